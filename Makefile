@@ -1,0 +1,46 @@
+# The two commands a user needs (see README.md):
+#   make demo   render the built-in Cornell box with 8 partitioned photon maps
+#   make test   run the test suite
+# Both create .venv/ on first use, install the package with its test extras, make sure a shared
+# libLLVM >= 16 is present for Dr.Jit's LLVM backend, and run with DRJIT_LIBLLVM_PATH set.
+# A second run reuses the environment: it reinstalls only when pyproject.toml changes.
+
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.mi-partpm-installed
+OUT    ?= out
+DATA   ?= $(abspath ../shared/data)
+
+# Evaluated only by the recipes that use it (recursive '='), so 'make help' installs nothing.
+LLVM    = $(shell sh tools/libllvm.sh)
+RUN_ENV = DRJIT_LIBLLVM_PATH="$(LLVM)" PARTPM_DATA="$${PARTPM_DATA:-$(DATA)}"
+
+.PHONY: demo test install llvm help clean
+
+help:
+	@echo "make demo   render the built-in cornell_box (480x480, 10^5 photons, 8 maps) to $(OUT)/"
+	@echo "make test   run the test suite"
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+llvm:
+	@test -n "$(LLVM)" || { echo "no usable libLLVM (see the message above)"; exit 1; }
+	@echo "libLLVM: $(LLVM)"
+
+demo: install llvm
+	@mkdir -p $(OUT)
+	$(RUN_ENV) $(BIN)/partpm render cornell_box --maps 8 --photons 100000 \
+		--resolution 480x480 -o $(OUT)/cornell_box.exr
+
+test: install llvm
+	$(RUN_ENV) $(BIN)/python -m pytest -q $(PYTEST_ARGS)
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache

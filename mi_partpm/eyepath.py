@@ -1,0 +1,97 @@
+"""Eye paths of a photon mapper: from the camera through delta bounces to density estimates.
+
+Step 2 of the paper's algorithm: shoot eye rays and intersect them with the scene. The path
+follows mirror and glass (delta) lobes; at every hit whose BSDF has a non-delta lobe the
+photon maps give the reflected radiance there (and, with ``nee``, emitter sampling gives the
+direct part). Emission is added where the camera sees an emitter directly or through delta
+bounces, the only paths the estimates do not already count.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import drjit as dr
+import mitsuba as mi
+
+__all__ = ["eye_path_radiance", "direct_light"]
+
+
+def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf,
+                 active):
+    """Direct illumination at ``si`` by one emitter sample (visibility tested)."""
+    ctx = mi.BSDFContext()
+    ds, emitter_weight = scene.sample_emitter_direction(si, sampler.next_2d(active), True,
+                                                        active)
+    active = active & (ds.pdf != 0)
+    f = bsdf.eval(ctx, si, si.to_local(ds.d), active)
+    return dr.select(active, f * emitter_weight, 0.0)
+
+
+@dr.syntax
+def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
+                      estimate: Callable, max_depth: int, rr_depth: int, nee: bool,
+                      hide_emitters: bool, active=True):
+    """Radiance along ``ray``: emission plus photon-map estimates at non-delta hits.
+
+    Parameters
+    ----------
+    estimate : callable(si, bsdf, active) -> mi.Spectrum
+        Reflected radiance from the photon maps at a hit.
+    max_depth : int
+        Longest eye path in segments (0xffffffff for unlimited).
+    rr_depth : int
+        Segment count from which Russian roulette may end a delta chain.
+    nee : bool
+        Add direct light by emitter sampling (the maps then hold indirect light only).
+    hide_emitters : bool
+        Emitters seen directly by the camera are black.
+
+    Returns
+    -------
+    (mi.Spectrum, mi.Bool)
+        The radiance and whether the camera ray hit a surface.
+    """
+    ray = mi.Ray3f(ray)
+    L = mi.Spectrum(0)
+    beta = mi.Spectrum(1)
+    depth = mi.UInt32(0)
+    valid = mi.Bool(False)
+    active = mi.Bool(active)
+    ctx_delta = mi.BSDFContext()
+    ctx_delta.type_mask = mi.BSDFFlags.Delta
+
+    while dr.hint(active, label="partpm_eye_path"):
+        si = scene.ray_intersect(ray, active)
+        valid |= active & si.is_valid() & (depth == 0)
+
+        # Emission seen by the camera, directly or through delta bounces.
+        emitter = si.emitter(scene, active)
+        show = active & (emitter != None) & ((depth > 0) | (not hide_emitters))  # noqa: E711
+        L += dr.select(show, beta * emitter.eval(si, show), 0.0)
+
+        active &= si.is_valid()
+        bsdf = si.bsdf(ray)
+        flags = bsdf.flags()
+
+        # Density estimate (and direct light) where the BSDF has a non-delta lobe.
+        smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth)
+        L += beta * estimate(si, bsdf, smooth)
+        if nee:
+            L += beta * direct_light(scene, sampler, si, bsdf, smooth)
+
+        # Follow the delta lobes (mirror, glass, plastic's coat).
+        follow = active & mi.has_flag(flags, mi.BSDFFlags.Delta) & (depth + 1 < max_depth)
+        bs, weight = bsdf.sample(ctx_delta, si, sampler.next_1d(follow),
+                                 sampler.next_2d(follow), follow)
+        beta *= weight
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        follow &= dr.any(beta != 0)
+        if depth + 1 >= rr_depth:
+            q = dr.minimum(dr.max(beta), 0.95)
+            survive = sampler.next_1d(follow) < q
+            beta = dr.select(survive, beta / q, 0.0)
+            follow &= survive
+        depth += 1
+        active = follow
+
+    return L, valid

@@ -1,0 +1,312 @@
+"""Balanced kd-trees over photon maps, and the fixed-radius query over all of them.
+
+A *forest* holds the n partial photon maps of eq. (2) of the paper, one kd-tree per map, in flat
+arrays. Every tree is balanced and implicit: node ``j`` of a map has children ``2j+1`` and
+``2j+2``; nodes ``0 .. I-1`` are internal (``I = 2**D - 1``) and nodes ``I .. 2I`` are the
+``2**D`` leaves, each holding a contiguous run of at most ``leaf_size`` photons. A node at level
+``d`` covering ``c`` photons is split at their median along the longest axis of the node's
+bounding box (paper, section 2.1), so all leaves of a map sit at the same depth.
+
+The build runs on the host with NumPy, one vectorised pass per tree level over all maps at
+once (no Python loop over nodes or maps). The query runs in Dr.Jit, one lane per query point,
+as a stackless walk of the implicit tree: it descends into every child whose half-space the
+query ball reaches and climbs back through parents, so it needs no per-lane stack.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+__all__ = ["Forest", "build_forest", "radius_query", "QueryStats"]
+
+#: Default number of photons per leaf. Small leaves mean deep trees and more node visits;
+#: large ones mean more distance tests. 8 balances the two for the paper's workloads.
+LEAF_SIZE = 8
+
+# Walk states of the stackless traversal.
+_DESCEND, _SCAN, _ASCEND = 0, 1, 2
+
+
+@dataclass
+class Forest:
+    """The n kd-trees of one partitioned photon map, in flat host (NumPy) arrays.
+
+    Photon arrays are in tree order: map 0's photons first, each map's photons ordered so that
+    every leaf is a contiguous run. ``order`` maps a tree-order index back to the caller's
+    photon index.
+
+    Attributes
+    ----------
+    points : (N, 3) float32
+        Photon positions in tree order.
+    order : (N,) int64
+        ``points[t] == input_points[order[t]]``.
+    split_value : (sum I_m,) float32
+        Split coordinate of every internal node, map after map.
+    split_axis : (sum I_m,) uint32
+        Split axis (0, 1, 2) of every internal node.
+    leaf_start : (sum (L_m + 1),) uint32
+        For map m, entries ``leaf_base[m] .. leaf_base[m] + L_m`` are the first photon of each
+        leaf and, last, the end of the map's photons (global tree-order indices).
+    node_base, leaf_base, internal_count, photon_count : (n,) arrays
+        Per-map offsets into ``split_*`` and ``leaf_start``, internal-node count ``I_m`` and
+        the number of photons stored in the map.
+    leaf_size : int
+        The most photons a leaf holds.
+    """
+
+    points: np.ndarray
+    order: np.ndarray
+    split_value: np.ndarray
+    split_axis: np.ndarray
+    leaf_start: np.ndarray
+    node_base: np.ndarray
+    leaf_base: np.ndarray
+    internal_count: np.ndarray
+    photon_count: np.ndarray
+    leaf_size: int
+    _device: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def map_count(self) -> int:
+        return int(self.photon_count.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the tree structure (nodes and leaf table), photons not included."""
+        return int(self.split_value.nbytes + self.split_axis.nbytes + self.leaf_start.nbytes)
+
+    def depth(self, m: int) -> int:
+        """Depth D of map m's tree (0 for a map that is a single leaf)."""
+        return int(np.log2(int(self.internal_count[m]) + 1))
+
+    def device(self) -> dict:
+        """The tree arrays as Dr.Jit arrays of the active variant (made once, then cached)."""
+        variant = mi.variant()
+        if self._device.get("variant") != variant:
+            self._device = {
+                "variant": variant,
+                "points": mi.Point3f(self.points[:, 0], self.points[:, 1], self.points[:, 2]),
+                "split_value": mi.Float(self.split_value),
+                "split_axis": mi.UInt32(self.split_axis),
+                "leaf_start": mi.UInt32(self.leaf_start),
+                "node_base": mi.UInt32(self.node_base.astype(np.uint32)),
+                "leaf_base": mi.UInt32(self.leaf_base.astype(np.uint32)),
+                "internal_count": mi.UInt32(self.internal_count.astype(np.uint32)),
+            }
+        return self._device
+
+
+def _tree_depth(counts: np.ndarray, leaf_size: int) -> np.ndarray:
+    """Smallest D with ceil(c / 2**D) <= leaf_size, per map."""
+    leaves_needed = np.maximum(1, -(-counts // leaf_size))
+    return np.ceil(np.log2(leaves_needed)).astype(np.int64)
+
+
+def build_forest(points, map_ids=None, map_count: int | None = None,
+                 leaf_size: int = LEAF_SIZE) -> Forest:
+    """Build one balanced kd-tree per photon map.
+
+    Parameters
+    ----------
+    points : array_like, shape (N, 3)
+        Photon positions.
+    map_ids : array_like of int, shape (N,), optional
+        The map each photon belongs to, in ``[0, map_count)``. Default: all in map 0.
+    map_count : int, optional
+        Number of maps n. Default: ``max(map_ids) + 1`` (1 for no photons). Maps that receive
+        no photon are empty trees.
+    leaf_size : int
+        The most photons a leaf holds (>= 1).
+
+    Returns
+    -------
+    Forest
+
+    Notes
+    -----
+    Each level is one vectorised pass over every photon still in an unfinished tree: it takes
+    the bounding box of each node's photons, picks the longest axis, sorts each node's run
+    along it (one ``lexsort`` keyed by node), and records the median coordinate as the split.
+    Node ``k`` of level ``d`` in a map of ``c`` photons covers the run
+    ``[floor(k c / 2**d), floor((k+1) c / 2**d))``, so its two halves differ by at most one.
+    """
+    pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+    n_points = pts.shape[0]
+    if map_ids is None:
+        map_ids = np.zeros(n_points, dtype=np.int64)
+    map_ids = np.asarray(map_ids, dtype=np.int64).reshape(-1)
+    if map_ids.shape[0] != n_points:
+        raise ValueError(f"map_ids has {map_ids.shape[0]} entries for {n_points} points")
+    if map_count is None:
+        map_count = int(map_ids.max()) + 1 if n_points else 1
+    if map_count < 1:
+        raise ValueError(f"map_count must be >= 1, got {map_count}")
+    if n_points and (map_ids.min() < 0 or map_ids.max() >= map_count):
+        raise ValueError(f"map_ids must lie in [0, {map_count}), got "
+                         f"[{map_ids.min()}, {map_ids.max()}]")
+    if not isinstance(leaf_size, (int, np.integer)) or leaf_size < 1:
+        raise ValueError(f"leaf_size must be an integer >= 1, got {leaf_size!r}")
+    if not np.all(np.isfinite(pts)):
+        raise ValueError("photon positions must be finite")
+
+    order = np.argsort(map_ids, kind="stable")
+    pts = pts[order]
+    counts = np.bincount(map_ids, minlength=map_count).astype(np.int64)
+    starts = np.concatenate(([0], np.cumsum(counts)))[:-1]
+    depth = _tree_depth(counts, leaf_size)
+    internal = (1 << depth) - 1
+    leaves = 1 << depth
+    node_base = np.concatenate(([0], np.cumsum(internal)))[:-1]
+    leaf_base = np.concatenate(([0], np.cumsum(leaves + 1)))[:-1]
+    split_value = np.zeros(int(internal.sum()), dtype=np.float32)
+    split_axis = np.zeros(int(internal.sum()), dtype=np.uint32)
+
+    for d in range(int(depth.max()) if map_count else 0):
+        maps = np.nonzero(depth > d)[0]
+        nodes_per_map = 1 << d
+        m = np.repeat(maps, nodes_per_map)
+        k = np.tile(np.arange(nodes_per_map, dtype=np.int64), maps.shape[0])
+        c = counts[m]
+        lo = starts[m] + (k * c) // nodes_per_map
+        hi = starts[m] + ((k + 1) * c) // nodes_per_map
+        lens = hi - lo
+        seg_offsets = np.concatenate(([0], np.cumsum(lens)))
+        seg_of = np.repeat(np.arange(lens.shape[0]), lens)
+        idx = np.repeat(lo, lens) + (np.arange(seg_offsets[-1]) - seg_offsets[seg_of])
+        sub = pts[idx]
+        extent = (np.maximum.reduceat(sub, seg_offsets[:-1], axis=0)
+                  - np.minimum.reduceat(sub, seg_offsets[:-1], axis=0))
+        axis = np.argmax(extent, axis=1)
+        key = sub[np.arange(sub.shape[0]), axis[seg_of]]
+        perm = np.lexsort((key, seg_of))
+        pts[idx] = sub[perm]
+        order[idx] = order[idx[perm]]
+        mid = starts[m] + ((2 * k + 1) * c) // (2 * nodes_per_map)
+        node = node_base[m] + (nodes_per_map - 1) + k
+        split_value[node] = pts[mid, axis]
+        split_axis[node] = axis
+
+    # Leaf table: leaf j of map m starts at floor(j c / L); one closing entry per map.
+    m = np.repeat(np.arange(map_count), leaves + 1)
+    j = np.arange(int((leaves + 1).sum())) - np.repeat(leaf_base, leaves + 1)
+    leaf_start = (starts[m] + (j * counts[m]) // leaves[m]).astype(np.uint32)
+
+    return Forest(points=pts, order=order, split_value=split_value, split_axis=split_axis,
+                  leaf_start=leaf_start, node_base=node_base, leaf_base=leaf_base,
+                  internal_count=internal, photon_count=counts, leaf_size=int(leaf_size))
+
+
+@dataclass
+class QueryStats:
+    """Traversal counts per query point: the workload of one query on all maps searched."""
+
+    nodes_visited: object
+    photons_tested: object
+    photons_found: object
+
+
+def _coordinate(p, axis):
+    return dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
+
+
+@dr.syntax
+def radius_query(forest: Forest, p, r, contribution, result_type=None, active=True,
+                 maps=None, with_stats: bool = False):
+    """Sum, over the photons within distance ``r`` of each query point, ``contribution(i)``.
+
+    Parameters
+    ----------
+    forest : Forest
+        The photon maps.
+    p : mi.Point3f
+        Query points, one per lane.
+    r : float or mi.Float
+        Search radius (the same for every map, as eq. (2) requires).
+    contribution : callable(index: mi.UInt32, active: mi.Bool) -> Spectrum-like
+        Called for each photon found (tree-order index into the forest's photon arrays); its
+        results are summed.
+    result_type : Dr.Jit array type
+        Type of ``contribution``'s results, e.g. ``mi.Spectrum`` (default: ``mi.Float``).
+    active : mi.Bool
+        Lanes to query.
+    maps : tuple (first, stop), optional
+        Search only maps ``first .. stop-1`` (default: all). The sum over all maps is the
+        gathered estimate of eq. (2); one map alone is its partial term.
+    with_stats : bool
+        Also return a :class:`QueryStats` with per-lane traversal counts.
+
+    Returns
+    -------
+    total, or (total, QueryStats)
+    """
+    dev = forest.device()
+    first, stop = (0, forest.map_count) if maps is None else maps
+    r = mi.Float(r)
+    r2 = r * r
+    total = dr.zeros(mi.Float if result_type is None else result_type, dr.width(p))
+
+    active = mi.Bool(active) & (first < stop)
+    m = mi.UInt32(first)
+    node = mi.UInt32(0)
+    mode = mi.UInt32(_DESCEND)
+    i = mi.UInt32(0)
+    end = mi.UInt32(0)
+    node_base = dr.gather(mi.UInt32, dev["node_base"], m, active)
+    leaf_base = dr.gather(mi.UInt32, dev["leaf_base"], m, active)
+    n_int = dr.gather(mi.UInt32, dev["internal_count"], m, active)
+    nodes_visited = mi.UInt32(0)
+    photons_tested = mi.UInt32(0)
+    photons_found = mi.UInt32(0)
+    stop_u = mi.UInt32(stop)
+
+    while dr.hint(active, label="partpm_radius_query"):
+        if mode == _DESCEND:
+            nodes_visited += 1
+            if node < n_int:
+                axis = dr.gather(mi.UInt32, dev["split_axis"], node_base + node)
+                split = dr.gather(mi.Float, dev["split_value"], node_base + node)
+                node = dr.select(_coordinate(p, axis) - r <= split, 2 * node + 1, 2 * node + 2)
+            else:
+                leaf = leaf_base + (node - n_int)
+                i = dr.gather(mi.UInt32, dev["leaf_start"], leaf)
+                end = dr.gather(mi.UInt32, dev["leaf_start"], leaf + 1)
+                mode = mi.UInt32(_SCAN)
+        elif mode == _SCAN:
+            if i < end:
+                photons_tested += 1
+                q = dr.gather(mi.Point3f, dev["points"], i)
+                found = dr.squared_norm(q - p) <= r2
+                if found:
+                    photons_found += 1
+                    total += contribution(i, found)
+                i += 1
+            else:
+                mode = mi.UInt32(_ASCEND)
+        else:
+            if node == 0:
+                # This map is done: restart at the root of the next one, or finish.
+                m += 1
+                if m < stop_u:
+                    node_base = dr.gather(mi.UInt32, dev["node_base"], m)
+                    leaf_base = dr.gather(mi.UInt32, dev["leaf_base"], m)
+                    n_int = dr.gather(mi.UInt32, dev["internal_count"], m)
+                    mode = mi.UInt32(_DESCEND)
+                else:
+                    active = mi.Bool(False)
+            else:
+                parent = (node - 1) >> 1
+                to_sibling = mi.Bool(False)
+                if (node & 1) == 1:
+                    # Coming up from a left child: the right one is next if the ball reaches it.
+                    axis = dr.gather(mi.UInt32, dev["split_axis"], node_base + parent)
+                    split = dr.gather(mi.Float, dev["split_value"], node_base + parent)
+                    to_sibling = _coordinate(p, axis) + r >= split
+                node = dr.select(to_sibling, node + 1, parent)
+                mode = dr.select(to_sibling, mi.UInt32(_DESCEND), mi.UInt32(_ASCEND))
+
+    stats = QueryStats(nodes_visited, photons_tested, photons_found)
+    return (total, stats) if with_stats else total

@@ -1,0 +1,72 @@
+"""Partitioned photon maps: the stored photons of n maps, each map a kd-tree.
+
+:class:`PhotonMaps` joins a :class:`~mi_partpm.kdtree.Forest` (the trees) with the photons'
+attributes in tree order, on the device, ready for density estimation.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mitsuba as mi
+import numpy as np
+
+from .kdtree import LEAF_SIZE, Forest, build_forest
+from .photons import Photons
+
+__all__ = ["PhotonMaps", "build_photon_maps"]
+
+
+@dataclass
+class PhotonMaps:
+    """n partial photon maps, ready to query.
+
+    Attributes
+    ----------
+    forest : Forest
+        One balanced kd-tree per map.
+    direction, power, normal : Dr.Jit arrays
+        Photon attributes in the forest's tree order (``mi.Vector3f``, ``mi.Spectrum``,
+        ``mi.Vector3f``).
+    emitted : int
+        N, the photons emitted over all maps (powers are already divided by it).
+    """
+
+    forest: Forest
+    direction: object
+    power: object
+    normal: object
+    emitted: int
+
+    @property
+    def map_count(self) -> int:
+        return self.forest.map_count
+
+    @property
+    def photon_count(self) -> int:
+        """Photons stored over all maps."""
+        return int(self.forest.points.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of photons (position, direction, power, normal, float32) plus trees."""
+        channels = mi.Spectrum.Size if hasattr(mi.Spectrum, "Size") else 3
+        return self.photon_count * 4 * (9 + channels) + self.forest.nbytes
+
+
+def _vector(a: np.ndarray):
+    return mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+
+
+def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE) -> PhotonMaps:
+    """Build the kd-tree of every map of ``photons`` and upload the attributes."""
+    forest = build_forest(photons.position, photons.map_id.astype(np.int64),
+                          photons.map_count, leaf_size)
+    order = forest.order
+    power = photons.power[order]
+    if power.shape[1] == 3:
+        spectrum = mi.Spectrum(power[:, 0], power[:, 1], power[:, 2])
+    else:
+        spectrum = mi.Spectrum(power[:, 0])
+    return PhotonMaps(forest=forest, direction=_vector(photons.direction[order]),
+                      power=spectrum, normal=_vector(photons.normal[order]),
+                      emitted=photons.emitted)

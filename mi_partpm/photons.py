@@ -1,0 +1,225 @@
+"""Photon tracing: emit photons from a Mitsuba scene's emitters and store them on surfaces.
+
+Step 1 of the paper's algorithm (figure 4): every map i of n traces its own share of the N
+photons from its own random stream, so the n partial maps are independent and, together, are
+the full photon map. Photon power is normalised by the TOTAL photon count N, so the per-map
+density estimates add up to the full estimate with no rescaling (eq. 2).
+
+Tracing is a wavefront in Dr.Jit: one kernel per bounce over all live photon paths, after
+which the paths that ended are compacted away. The Python loop runs over bounces, never over
+photons.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+__all__ = ["Photons", "map_sizes", "map_seeds", "trace_photons", "UNLIMITED_DEPTH"]
+
+#: Internal stand-in for ``max_depth = -1`` (no limit; Russian roulette ends the paths).
+UNLIMITED_DEPTH = 2**31 - 1
+
+
+@dataclass
+class Photons:
+    """Photons stored on non-delta surfaces, on the host.
+
+    Attributes
+    ----------
+    position : (K, 3) float32
+        Where the photon was stored.
+    direction : (K, 3) float32
+        Unit incident direction, pointing from the surface back along the arriving photon.
+    power : (K, C) float32
+        Flux carried (C colour channels), already divided by the total emitted count N.
+    normal : (K, 3) float32
+        Shading normal at the hit, turned to the side the photon arrived from.
+    map_id : (K,) uint32
+        The partial map the photon belongs to (the map whose emission produced it).
+    bounce : (K,) uint16
+        Number of segments from the emitter (1 = direct illumination).
+    emitted : int
+        N, the photons emitted in total over all maps (also those of maps not traced here).
+    map_count : int
+        n, the number of partial maps.
+    """
+
+    position: np.ndarray
+    direction: np.ndarray
+    power: np.ndarray
+    normal: np.ndarray
+    map_id: np.ndarray
+    bounce: np.ndarray
+    emitted: int
+    map_count: int
+
+    def __len__(self) -> int:
+        return int(self.position.shape[0])
+
+    def select(self, mask: np.ndarray) -> "Photons":
+        """The photons where ``mask`` holds (same N and n)."""
+        return Photons(self.position[mask], self.direction[mask], self.power[mask],
+                       self.normal[mask], self.map_id[mask], self.bounce[mask],
+                       self.emitted, self.map_count)
+
+    def with_maps(self, map_id: np.ndarray, map_count: int) -> "Photons":
+        """The same photons assigned to other maps (for partition-invariance checks)."""
+        return Photons(self.position, self.direction, self.power, self.normal,
+                       np.asarray(map_id, dtype=np.uint32), self.bounce, self.emitted,
+                       int(map_count))
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(a.nbytes for a in (self.position, self.direction, self.power,
+                                          self.normal, self.map_id, self.bounce)))
+
+
+def map_sizes(photon_count: int, map_count: int) -> np.ndarray:
+    """Emitted photons per map: as even as possible, sizes differ by at most one, sum is N."""
+    base, extra = divmod(int(photon_count), int(map_count))
+    return np.array([base + (i < extra) for i in range(map_count)], dtype=np.int64)
+
+
+def _splitmix64(x: np.ndarray) -> np.ndarray:
+    x = (x + np.uint64(0x9E3779B97F4A7C15)).astype(np.uint64)
+    x = ((x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)).astype(np.uint64)
+    x = ((x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)).astype(np.uint64)
+    return (x ^ (x >> np.uint64(31))).astype(np.uint64)
+
+
+def map_seeds(seed: int, map_count: int) -> np.ndarray:
+    """The random-stream state of each map: a hash of (seed, map index) and nothing else."""
+    with np.errstate(over="ignore"):
+        s = _splitmix64(np.full(map_count, int(seed) & 0xFFFFFFFFFFFFFFFF, dtype=np.uint64))
+        return _splitmix64(s ^ (np.arange(map_count, dtype=np.uint64) * np.uint64(0xD1B54A32D192ED03)))
+
+
+def _gather_all(idx, *values):
+    return [dr.gather(type(v), v, idx) for v in values]
+
+
+def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: int = 0,
+                  max_depth: int = -1, rr_depth: int = 5, maps: Optional[Sequence[int]] = None,
+                  min_bounce: int = 1,
+                  progress: Optional[Callable[[str], None]] = None) -> Photons:
+    """Trace ``photon_count`` photons split over ``map_count`` maps.
+
+    Parameters
+    ----------
+    scene : mi.Scene
+        Any scene with at least one emitter (area, point, spot, directional, environment...).
+    photon_count : int
+        N, photons emitted in total over all maps.
+    map_count : int
+        n; map i emits ``map_sizes(N, n)[i]`` photons from its own stream (seed, i).
+    seed : int
+        Seed of the photon streams.
+    max_depth : int
+        Longest photon path in segments from the emitter (-1: unlimited, Russian roulette
+        ends the paths).
+    rr_depth : int
+        Segment count from which Russian roulette may end a path.
+    maps : sequence of int, optional
+        Trace only these maps (a rank of a distributed job); default all.
+    min_bounce : int
+        Store photons from this many segments on (2 leaves out direct illumination).
+    progress : callable(str), optional
+        Receives a line per bounce.
+
+    Returns
+    -------
+    Photons
+        Stored photons, ``emitted == photon_count`` whichever maps were traced.
+    """
+    if not scene.emitters():
+        raise ValueError("the scene has no emitter: photon mapping needs at least one light")
+    sizes = map_sizes(photon_count, map_count)
+    maps = np.arange(map_count) if maps is None else np.asarray(list(maps), dtype=np.int64)
+    max_depth = UNLIMITED_DEPTH if max_depth == -1 else int(max_depth)
+
+    # Lane -> (map, index within the map), for the traced maps only.
+    lane_map = np.repeat(maps, sizes[maps]).astype(np.uint32)
+    lane_index = (np.arange(lane_map.shape[0]) - np.repeat(
+        np.concatenate(([0], np.cumsum(sizes[maps])))[:-1], sizes[maps])).astype(np.uint64)
+    n_lanes = int(lane_map.shape[0])
+    channels = 3 if mi.is_rgb else 1
+    empty = Photons(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
+                    np.zeros((0, channels), np.float32), np.zeros((0, 3), np.float32),
+                    np.zeros(0, np.uint32), np.zeros(0, np.uint16), int(photon_count),
+                    int(map_count))
+    if n_lanes == 0:
+        return empty
+
+    map_id = mi.UInt32(lane_map)
+    rng = mi.PCG32(n_lanes)
+    rng.seed(dr.gather(mi.UInt64, mi.UInt64(map_seeds(seed, map_count)), map_id),
+             mi.UInt64(lane_index))
+
+    active = mi.Bool(True)
+    ray, emitted_weight, _ = scene.sample_emitter_ray(
+        mi.Float(0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
+        mi.Point2f(rng.next_float32(), rng.next_float32()), active)
+    power = mi.Spectrum(emitted_weight) / float(photon_count)
+    active = dr.any(power != 0) & dr.all(dr.isfinite(power))
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+
+    stored = {k: [] for k in ("position", "direction", "power", "normal", "map_id", "bounce")}
+    bounce = 1
+    while bounce <= max_depth:
+        # Drop the paths that ended; keep the state of the live ones.
+        idx = dr.compress(active)
+        alive = dr.width(idx)
+        if alive == 0:
+            break
+        if alive != dr.width(map_id):
+            ray, power, map_id, state, inc = _gather_all(idx, ray, power, map_id, rng.state,
+                                                         rng.inc)
+            rng = mi.PCG32(alive)
+            rng.state, rng.inc = state, inc
+        active = mi.Bool(True)
+        if progress is not None:
+            progress(f"bounce {bounce}: {alive} photon paths")
+
+        si = scene.ray_intersect(ray, active)
+        active &= si.is_valid()
+        bsdf = si.bsdf()
+        store = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (bounce >= min_bounce)
+        normal = si.sh_frame.n
+        normal = dr.select(dr.dot(normal, -ray.d) < 0, -normal, normal)
+
+        s = dr.compress(store)
+        if dr.width(s) > 0:
+            pos, wi, pw, nrm = _gather_all(s, si.p, -ray.d, power, normal)
+            mid = dr.gather(mi.UInt32, map_id, s)
+            stored["position"].append(pos.numpy().T)
+            stored["direction"].append(wi.numpy().T)
+            stored["power"].append(np.atleast_2d(pw.numpy()).reshape(channels, -1).T)
+            stored["normal"].append(nrm.numpy().T)
+            stored["map_id"].append(mid.numpy())
+            stored["bounce"].append(np.full(dr.width(s), min(bounce, 65535), np.uint16))
+
+        if bounce == max_depth:
+            break
+        sample1 = rng.next_float32()
+        sample2 = mi.Point2f(rng.next_float32(), rng.next_float32())
+        bs, bsdf_weight = bsdf.sample(ctx, si, sample1, sample2, active)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        power = power * bsdf_weight
+        active &= dr.any(power != 0) & dr.all(dr.isfinite(power))
+        if bounce >= rr_depth:
+            # Russian roulette on the path's throughput (power relative to its emission).
+            q = dr.minimum(dr.max(bsdf_weight), 0.95)
+            survive = rng.next_float32() < q
+            active &= survive
+            power = dr.select(survive, power / q, power)
+        dr.eval(ray, power, active, rng.state, map_id)
+        bounce += 1
+
+    if not stored["position"]:
+        return empty
+    return Photons(*(np.concatenate(stored[k]) for k in stored), int(photon_count),
+                   int(map_count))

@@ -1,0 +1,72 @@
+"""Registration of the integrator plugins with Mitsuba, per variant.
+
+A Python class that subclasses ``mi.SamplingIntegrator`` belongs to the variant that was active
+when it was defined. :func:`register` therefore (re)imports the plugin modules under the active
+variant and registers their classes; ``import mi_partpm`` calls it and hooks it to every later
+``mi.set_variant``.
+"""
+from __future__ import annotations
+
+import importlib
+
+import mitsuba as mi
+
+__all__ = ["register", "supported_variant", "check_variant", "PLUGINS"]
+
+#: Plugin name -> (module under mi_partpm.integrators, class name).
+PLUGINS = {
+    "partpm": ("partpm", "PartPMIntegrator"),
+}
+
+
+def supported_variant(variant) -> bool:
+    """JIT (LLVM or CUDA) variants with RGB or mono colour; not scalar, spectral, polarised."""
+    return (variant is not None and variant.split("_")[0] in ("llvm", "cuda")
+            and ("_rgb" in variant or "_mono" in variant) and "polarized" not in variant)
+
+
+def check_variant(variant=None):
+    variant = mi.variant() if variant is None else variant
+    if not supported_variant(variant):
+        works = [v for v in mi.variants() if supported_variant(v)]
+        raise ValueError(f"mi_partpm needs a JIT RGB or mono Mitsuba variant, the active one is "
+                         f"{variant!r}; use one of: {', '.join(works)} (e.g. "
+                         f"mi.set_variant('llvm_ad_rgb'))")
+    return variant
+
+
+def _unsupported(props):
+    check_variant()  # raises: this variant cannot run the plugins
+
+
+def register():
+    """Register every plugin of :data:`PLUGINS` for the active variant."""
+    variant = mi.variant()
+    if variant is None:
+        return
+    for name, (module_name, class_name) in PLUGINS.items():
+        if not supported_variant(variant):
+            mi.register_integrator(name, _unsupported)
+            continue
+        full = f"mi_partpm.integrators.{module_name}"
+        module = importlib.import_module(full)
+        if getattr(module, "_variant", None) != variant:
+            module = importlib.reload(module)
+            module._variant = variant
+        cls = getattr(module, class_name)
+        mi.register_integrator(name, lambda props, cls=cls: cls(props))
+
+
+def _on_variant_change(old, new):
+    register()
+
+
+_hooked = False
+
+
+def hook_variant_changes():
+    """Re-register the plugins whenever ``mi.set_variant`` changes the variant (once)."""
+    global _hooked
+    if not _hooked:
+        mi.detail.add_variant_callback(_on_variant_change)
+        _hooked = True

@@ -1,0 +1,79 @@
+"""Built-in scenes, shipped as Mitsuba XML files and loadable by name.
+
+=====================  ==================================================================
+name                   what it is
+=====================  ==================================================================
+``cornell_box``        the paper's second scene: Cornell box with a mirror and a glass
+                       sphere (diffuse and specular surfaces)
+``cornell_box_diffuse`` the Cornell box with its two white boxes, diffuse only
+=====================  ==================================================================
+
+Every built-in scene takes the parameters ``resx``, ``resy`` (film size, default 480) and
+``spp`` (samples per pixel, default 4).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional, Tuple
+
+import mitsuba as mi
+
+__all__ = ["scene_names", "scene_path", "load_scene"]
+
+_HERE = Path(__file__).resolve().parent
+
+
+def scene_names():
+    """Names of the built-in scenes."""
+    return sorted(p.stem for p in _HERE.glob("*.xml"))
+
+
+def scene_path(scene: str) -> Path:
+    """The XML file of a built-in scene name, or ``scene`` itself if it is a file.
+
+    Raises
+    ------
+    FileNotFoundError
+        Neither a built-in name nor an existing file; the message lists the built-in names.
+    """
+    builtin = _HERE / f"{scene}.xml"
+    if "/" not in scene and "\\" not in scene and builtin.is_file():
+        return builtin
+    path = Path(scene)
+    if path.is_file():
+        return path
+    raise FileNotFoundError(f"scene {scene!r} is neither a built-in scene "
+                            f"({', '.join(scene_names())}) nor an existing file")
+
+
+def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
+               spp: Optional[int] = None, **params) -> mi.Scene:
+    """Load a built-in scene by name, or a scene file by path.
+
+    Parameters
+    ----------
+    scene : str
+        A name from :func:`scene_names` or the path of a Mitsuba XML file.
+    resolution : (width, height), optional
+        Film size, passed as the scene parameters ``resx`` and ``resy``.
+    spp : int, optional
+        Samples per pixel, passed as the scene parameter ``spp``.
+    **params
+        Further ``$name`` parameters of the scene file.
+
+    Raises
+    ------
+    FileNotFoundError
+        The scene does not exist.
+    ValueError
+        The file does not parse, or a parameter is not one the file takes.
+    """
+    path = scene_path(scene)
+    if resolution is not None:
+        params["resx"], params["resy"] = int(resolution[0]), int(resolution[1])
+    if spp is not None:
+        params["spp"] = int(spp)
+    try:
+        return mi.load_file(str(path), **{k: str(v) for k, v in params.items()})
+    except RuntimeError as e:
+        raise ValueError(f"could not load scene {str(path)!r}: {e}") from None
