@@ -109,6 +109,7 @@ class PartPMIntegrator(mi.SamplingIntegrator):
         """Steps 1 of figure 4: trace every map's photons and build its kd-tree."""
         p = self.params
         self.radius = scene_radius(scene, p.radius, p.radius_fraction)
+        log.info("trace: emitting %d photons into %d maps ...", p.photon_count, self.map_count)
         t0 = time.perf_counter()
         photons = trace_photons(scene, p.photon_count, self.map_count, p.seed,
                                 p.photon_depth, p.rr_depth,

@@ -1,0 +1,119 @@
+"""The kd-tree forest: structure, the fixed-radius query against scipy, eq. (2) invariance."""
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import drjit as dr
+import mitsuba as mi
+
+from mi_partpm.kdtree import build_forest, radius_query
+from mi_partpm.photonmap import build_photon_maps
+from mi_partpm.photons import trace_photons
+from mi_partpm.estimate import radiance_estimate
+
+
+def _query_sums(forest, weights, queries, r, maps=None):
+    w = mi.Float(np.asarray(weights, np.float32)[forest.order])
+    q = mi.Point3f(*[np.asarray(queries[:, k], np.float32) for k in range(3)])
+    total, stats = radius_query(forest, q, r, lambda i, a: dr.gather(mi.Float, w, i, a),
+                                maps=maps, with_stats=True)
+    return total.numpy(), stats.photons_found.numpy(), stats
+
+
+def _reference(points, weights, queries, r):
+    """scipy's neighbours, with the photons within float rounding of the sphere set apart."""
+    tree = cKDTree(points.astype(np.float64))
+    inner = tree.query_ball_point(queries, r * (1 - 1e-5))
+    outer = tree.query_ball_point(queries, r * (1 + 1e-5))
+    lo = np.array([weights[i].sum() for i in inner])
+    hi = np.array([weights[i].sum() for i in outer])
+    return lo, hi, np.array([len(i) for i in inner]), np.array([len(i) for i in outer])
+
+
+def _check_against_scipy(points, queries, r, map_ids=None, n_maps=None):
+    rng = np.random.default_rng(3)
+    weights = rng.random(points.shape[0]).astype(np.float32)
+    forest = build_forest(points, map_ids, n_maps)
+    sums, found, _ = _query_sums(forest, weights, queries, r)
+    lo, hi, n_lo, n_hi = _reference(points, weights, queries, r)
+    assert np.all(found >= n_lo) and np.all(found <= n_hi), "photon sets differ from scipy's"
+    tol = 1e-5 * np.maximum(hi, 1) + 1e-6
+    assert np.all(sums >= lo - tol) and np.all(sums <= hi + tol), "power sums differ"
+    assert found.sum() > 0, "the test found no photon at all"
+
+
+def test_tree_structure_is_balanced_median_split():
+    rng = np.random.default_rng(0)
+    pts = rng.random((1000, 3)) * np.array([4.0, 1.0, 0.5])
+    f = build_forest(pts, leaf_size=8)
+    # 1000 photons, leaves of <= 8: 2^7 = 128 leaves of 7 or 8 photons.
+    assert f.depth(0) == 7
+    sizes = np.diff(f.leaf_start.astype(np.int64))
+    assert sizes.min() >= 7 and sizes.max() <= 8 and sizes.sum() == 1000
+    # The root splits the longest axis (x) at the median.
+    assert f.split_axis[0] == 0
+    assert abs(f.split_value[0] - np.median(pts[:, 0])) < 0.05
+    # Every photon of the left subtree is <= the split, every one of the right >= it.
+    assert f.points[:500, 0].max() <= f.split_value[0] <= f.points[500:, 0].min()
+    assert np.array_equal(np.sort(f.order), np.arange(1000))
+
+
+def test_uneven_map_sizes_and_empty_maps():
+    pts = np.random.default_rng(1).random((37, 3))
+    ids = np.r_[np.zeros(30, int), np.full(7, 2)]
+    f = build_forest(pts, ids, map_count=4)
+    assert list(f.photon_count) == [30, 0, 7, 0]
+    _check_against_scipy(pts, pts[:10], 0.3, ids, 4)
+
+
+def test_radius_query_matches_scipy_on_random_photons():
+    rng = np.random.default_rng(2)
+    pts = rng.random((20000, 3))
+    queries = rng.random((3000, 3))
+    _check_against_scipy(pts, queries, 0.05)
+    _check_against_scipy(pts, queries, 0.05, rng.integers(0, 5, 20000), 5)
+
+
+def test_radius_query_matches_scipy_on_traced_photons():
+    scene = mi_partpm_scene("cornell_box_diffuse")
+    photons = trace_photons(scene, 20000, 1, seed=1)
+    queries = photons.position[::7]
+    _check_against_scipy(photons.position, queries, 0.1)
+
+
+def test_degenerate_sets_duplicates_and_plane():
+    pts = np.zeros((100, 3))
+    _check_against_scipy(pts, np.zeros((2, 3)), 0.1)
+    rng = np.random.default_rng(4)
+    plane = np.c_[rng.random((5000, 2)), np.zeros(5000)]
+    _check_against_scipy(plane, plane[:500], 0.02)
+
+
+def mi_partpm_scene(name, res=(32, 32), spp=1):
+    import mi_partpm
+    return mi_partpm.load_scene(name, resolution=res, spp=spp)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 32])
+def test_partition_invariance_eq2(n):
+    """One photon set split into n maps and gathered = one map, at the same hit points."""
+    scene = mi_partpm_scene("cornell_box", res=(48, 48))
+    photons = trace_photons(scene, 30000, 1, seed=5)
+    rng = np.random.default_rng(n)
+    one = build_photon_maps(photons)
+    split = build_photon_maps(photons.with_maps(rng.integers(0, n, len(photons)), n))
+    sensor = scene.sensors()[0]
+    k = 48 * 48
+    uv = mi.Point2f(*[mi.Float(np.asarray(a, np.float32)) for a in rng.random((2, k))])
+    ray, _ = sensor.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
+    si = scene.ray_intersect(ray)
+    bsdf = si.bsdf(ray)
+    active = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    a = radiance_estimate(one, si, bsdf, 0.1, active).numpy()
+    b = radiance_estimate(split, si, bsdf, 0.1, active).numpy()
+    assert a.max() > 0
+    np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6 * a.max())
+    # Each map alone is a partial term; the partial terms add up to the whole.
+    parts = sum(radiance_estimate(split, si, bsdf, 0.1, active, map_range=(m, m + 1)).numpy()
+                for m in range(n))
+    np.testing.assert_allclose(parts, a, rtol=1e-4, atol=1e-6 * a.max())
