@@ -38,7 +38,7 @@ def read_float(props, name: str, default, low: Optional[float] = None,
                high_open: bool = False) -> float:
     value = _get(props, name, default)
     lo = "(" if low_open else "["
-    hi = ")" if high_open else "]"
+    hi = ")" if high_open or high is None else "]"
     what = f"in {lo}{'-inf' if low is None else low}, {'inf' if high is None else high}{hi}"
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"{name} must be a finite number {what}, got {value!r}")

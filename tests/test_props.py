@@ -1,0 +1,97 @@
+"""Bad props and bad command lines fail fast with a message naming the parameter."""
+import math
+
+import numpy as np
+import pytest
+
+import mitsuba as mi
+
+from mi_partpm.cli import main
+from mi_partpm.photons import map_seeds, map_sizes
+
+
+@pytest.mark.parametrize("props, message", [
+    ({"photon_count": 0}, r"photon_count must be an integer >= 1, got 0"),
+    ({"photon_count": -5}, r"photon_count must be an integer >= 1, got -5"),
+    ({"photon_count": 1.5}, r"photon_count must be an integer >= 1, got 1.5"),
+    ({"map_count": 0}, r"map_count must be an integer in \[1, photon_count = 100000\], got 0"),
+    ({"photon_count": 10, "map_count": 11}, r"map_count .* got 11"),
+    ({"radius": 0.0}, r"radius must be a finite number in \(0.0, inf\), got 0.0"),
+    ({"radius": -1.0}, r"radius must be .* got -1.0"),
+    ({"radius": math.inf}, r"radius must be .* got inf"),
+    ({"radius": math.nan}, r"radius must be .* got nan"),
+    ({"radius_fraction": 0.0}, r"radius_fraction must be a finite number in \(0.0, 1.0\]"),
+    ({"radius_fraction": 1.5}, r"radius_fraction .* got 1.5"),
+    ({"radius": 0.1, "radius_fraction": 0.1}, r"either radius or radius_fraction"),
+    ({"max_depth": -2}, r"max_depth must be an integer = -1 \(unlimited\) or >= 1, got -2"),
+    ({"max_depth": 0}, r"max_depth .* got 0"),
+    ({"rr_depth": 0}, r"rr_depth must be an integer >= 1, got 0"),
+    ({"direct": "both"}, r"direct must be one of 'photons', 'nee', got 'both'"),
+    ({"hide_emitters": 1}, r"hide_emitters.*(must be true or false|expected boolean)"),
+])
+def test_bad_props_raise_clear_errors(props, message):
+    with pytest.raises(Exception, match=message):
+        mi.load_dict({"type": "partpm", **props})
+
+
+def test_unknown_prop_is_rejected():
+    with pytest.raises(Exception, match="photon_cuont"):
+        mi.load_dict({"type": "partpm", "photon_cuont": 10})
+
+
+def test_map_sizes_even_and_complete():
+    sizes = map_sizes(100_003, 7)
+    assert sizes.sum() == 100_003 and sizes.max() - sizes.min() <= 1
+    assert list(map_sizes(5, 5)) == [1] * 5
+
+
+def test_map_seed_depends_on_seed_and_index_only():
+    assert np.array_equal(map_seeds(3, 8)[:4], map_seeds(3, 4))
+    assert len(set(map_seeds(3, 64).tolist())) == 64
+    assert not np.array_equal(map_seeds(3, 4), map_seeds(4, 4))
+
+
+def test_cli_render_writes_exr_and_png(tmp_path, capsys):
+    out = tmp_path / "cb.exr"
+    assert main(["render", "cornell_box", "--maps", "2", "--photons", "3000",
+                 "--resolution", "16x12", "--spp", "1", "-o", str(out)]) == 0
+    assert out.is_file() and out.with_suffix(".png").is_file()
+    img = np.array(mi.Bitmap(str(out)))
+    assert img.shape[:2] == (12, 16) and img.mean() > 0
+    text = capsys.readouterr().out
+    for phase in ("trace", "build", "estimate"):
+        assert phase in text
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["render", "no_such_scene", "-o", "x.exr"], "neither a built-in scene"),
+    (["render", "cornell_box"], "needs -o"),
+    (["render", "cornell_box", "-o", "x.png"], "must name an .exr"),
+    (["render", "cornell_box", "--maps", "20", "--photons", "10", "-o", "x.exr"],
+     r"map_count must be an integer in \[1, photon_count = 10\], got 20"),
+    (["render", "cornell_box", "--variant", "scalar_rgb", "-o", "x.exr"], "llvm_ad_rgb"),
+])
+def test_cli_errors_are_one_line(argv, message, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("partpm: error:") and \
+        __import__("re").search(message, err[0]), err
+
+
+@pytest.mark.parametrize("argv", [
+    ["render", "cornell_box", "--resolution", "4x", "-o", "x.exr"],
+    ["render", "cornell_box", "--maps", "0", "-o", "x.exr"],
+    ["render", "cornell_box", "--radius", "0", "-o", "x.exr"],
+])
+def test_cli_rejects_malformed_arguments(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    assert "must" in capsys.readouterr().err
+
+
+def test_cli_scene_without_emitter(tmp_path, capsys):
+    xml = tmp_path / "dark.xml"
+    xml.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    assert main(["render", str(xml), "-o", str(tmp_path / "d.exr")]) == 2
+    assert "no emitter" in capsys.readouterr().err
