@@ -146,6 +146,7 @@ class PartPMIntegrator(mi.SamplingIntegrator):
         finally:
             self._rendering = False
         dr.eval(image)  # also when asked not to: the estimate phase is timed here
+        dr.sync_thread()
         self.stats["time_estimate"] = time.perf_counter() - t0
         log.info("estimate: %.2f s", self.stats["time_estimate"])
         return image

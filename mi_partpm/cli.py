@@ -143,6 +143,7 @@ def _render(args) -> int:
     t1 = time.perf_counter()
     image = mi.render(scene, integrator=integrator, seed=args.seed)
     dr.eval(image)
+    dr.sync_thread()
     t2 = time.perf_counter()
 
     out.parent.mkdir(parents=True, exist_ok=True)
