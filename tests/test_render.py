@@ -155,3 +155,26 @@ def test_registration_follows_variant_changes():
     finally:
         mi.set_variant("llvm_ad_rgb")
     assert type(mi.load_dict({"type": "partpm"})).__name__ == "PartPMIntegrator"
+
+
+def test_glossy_surfaces_evaluate_the_bsdf_per_photon(tmp_path):
+    """A rough-conductor back wall and a rough-plastic tall box: f_r varies per photon, so
+    each is evaluated per photon. Measured display rel. MSE 0.004 (photons) and 0.0014 (nee)
+    against a 1024-spp path render; the bound is the same 0.03 as for the diffuse boxes."""
+    src = mi_partpm.scenes.scene_path("cornell_box_diffuse").read_text()
+    tall = '<translate x="-0.33" y="-0.4" z="-0.3"/>\n        </transform>\n        <ref id="white"/>'
+    back = '<translate z="-1"/>\n        </transform>\n        <ref id="white"/>'
+    assert tall in src and back in src
+    src = src.replace(tall, tall.replace('<ref id="white"/>', (
+        '<bsdf type="roughplastic"><float name="alpha" value="0.2"/>'
+        '<rgb name="diffuse_reflectance" value="0.3, 0.3, 0.6"/></bsdf>')))
+    src = src.replace(back, back.replace('<ref id="white"/>', (
+        '<bsdf type="roughconductor"><float name="alpha" value="0.3"/></bsdf>')))
+    (tmp_path / "glossy.xml").write_text(src)
+    scene = mi.load_file(str(tmp_path / "glossy.xml"), resx="48", resy="48", spp="4")
+    ref = render(scene, mi.load_dict({"type": "path", "max_depth": -1}), seed=7, spp=1024)
+    for direct in ("photons", "nee"):
+        img = render(scene, mi.load_dict({"type": "partpm", "photon_count": 100_000,
+                                          "map_count": 4, "direct": direct}))
+        err = display_rel_mse(img, ref)
+        assert err < 0.03 and abs(img.mean() / ref.mean() - 1) < 0.03, (direct, err)
