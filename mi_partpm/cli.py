@@ -150,7 +150,7 @@ def _render(args) -> int:
     bitmap = mi.Bitmap(image)
     bitmap.write(str(out))
     png = out.with_suffix(".png")
-    mi.util.write_bitmap(str(png), image)
+    mi.util.write_bitmap(str(png), image, write_async=False)
     stats = getattr(integrator, "stats", {})
     if not args.quiet:
         print(f"load     {t1 - t0:8.2f} s")
