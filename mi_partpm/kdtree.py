@@ -213,7 +213,6 @@ def _coordinate(p, axis):
     return dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
 
 
-@dr.syntax
 def radius_query(forest: Forest, p, r, contribution, result_type=None, active=True,
                  maps=None, with_stats: bool = False):
     """Sum, over the photons within distance ``r`` of each query point, ``contribution(i)``.
@@ -243,11 +242,25 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     -------
     total, or (total, QueryStats)
     """
-    dev = forest.device()
     first, stop = (0, forest.map_count) if maps is None else maps
+    result_type = mi.Float if result_type is None else result_type
+    if forest.points.shape[0] == 0:
+        # No photon anywhere: nothing to walk (and no array to gather from).
+        width = dr.width(p)
+        zeros = mi.UInt32(0) if width == 1 else dr.zeros(mi.UInt32, width)
+        stats = QueryStats(zeros, mi.UInt32(zeros), mi.UInt32(zeros))
+        total = dr.zeros(result_type, width)
+        return (total, stats) if with_stats else total
+    return _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats)
+
+
+@dr.syntax
+def _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats):
+    """The stackless traversal behind :func:`radius_query`, one lane per query point."""
+    dev = forest.device()
     r = mi.Float(r)
     r2 = r * r
-    total = dr.zeros(mi.Float if result_type is None else result_type, dr.width(p))
+    total = dr.zeros(result_type, dr.width(p))
 
     active = mi.Bool(active) & (first < stop)
     m = mi.UInt32(first)

@@ -178,3 +178,23 @@ def test_glossy_surfaces_evaluate_the_bsdf_per_photon(tmp_path):
                                           "map_count": 4, "direct": direct}))
         err = display_rel_mse(img, ref)
         assert err < 0.03 and abs(img.mean() / ref.mean() - 1) < 0.03, (direct, err)
+
+
+def test_scene_where_no_photon_can_be_stored(caplog):
+    """A mirror sphere under a constant sky: nothing stores photons. partpm warns and renders
+    the emitted light it can see (the sky, 1.0, through the mirror) instead of failing."""
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective",
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, -3], target=[0, 0, 0],
+                                                              up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+        "sphere": {"type": "sphere", "bsdf": {"type": "conductor", "material": "none"}},
+        "sky": {"type": "constant"},
+    })
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 1000})
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        img = render(scene, integrator)
+    assert integrator.stats["photons_stored"] == 0
+    assert "no photon was stored" in caplog.text
+    np.testing.assert_allclose(img, 1.0, rtol=1e-4)
