@@ -9,22 +9,11 @@ import mitsuba as mi
 
 from mi_partpm.estimate import radiance_estimate
 from mi_partpm.eyepath import eye_path_radiance
-from mi_partpm.photonmap import build_photon_maps
+from mi_partpm.photonmap import build_photon_maps, fixed_radius
 from mi_partpm.photons import trace_photons
 from mi_partpm.props import read_int, read_photon_map_params, UNLIMITED
 
 log = logging.getLogger("mi_partpm")
-
-
-def scene_radius(scene: mi.Scene, radius, radius_fraction: float) -> float:
-    """The fixed radius: ``radius`` if given, else a fraction of the bounding box's longest side."""
-    if radius is not None:
-        return float(radius)
-    extent = scene.bbox().extents()
-    longest = float(dr.max(mi.ScalarVector3f(extent)))
-    if not longest > 0:
-        raise ValueError("the scene's bounding box is empty: give radius explicitly")
-    return radius_fraction * longest
 
 
 class PartPMIntegrator(mi.SamplingIntegrator):
@@ -108,7 +97,7 @@ class PartPMIntegrator(mi.SamplingIntegrator):
     def build_maps(self, scene: mi.Scene):
         """Steps 1 of figure 4: trace every map's photons and build its kd-tree."""
         p = self.params
-        self.radius = scene_radius(scene, p.radius, p.radius_fraction)
+        self.radius = fixed_radius(scene, p.radius, p.radius_fraction)
         log.info("trace: emitting %d photons into %d maps ...", p.photon_count, self.map_count)
         t0 = time.perf_counter()
         photons = trace_photons(scene, p.photon_count, self.map_count, p.seed,

@@ -7,13 +7,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from .kdtree import LEAF_SIZE, Forest, build_forest
 from .photons import Photons
 
-__all__ = ["PhotonMaps", "build_photon_maps"]
+__all__ = ["PhotonMaps", "build_photon_maps", "fixed_radius"]
 
 
 @dataclass
@@ -70,3 +71,14 @@ def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE) -> PhotonMap
     return PhotonMaps(forest=forest, direction=_vector(photons.direction[order]),
                       power=spectrum, normal=_vector(photons.normal[order]),
                       emitted=photons.emitted)
+
+
+def fixed_radius(scene: mi.Scene, radius, radius_fraction: float) -> float:
+    """The fixed radius: ``radius`` if given, else a fraction of the bounding box's longest side."""
+    if radius is not None:
+        return float(radius)
+    extent = scene.bbox().extents()
+    longest = float(dr.max(mi.ScalarVector3f(extent)))
+    if not longest > 0:
+        raise ValueError("the scene's bounding box is empty: give radius explicitly")
+    return radius_fraction * longest

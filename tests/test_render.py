@@ -51,20 +51,28 @@ def test_partpm_agrees_with_path_tracer(path_references, name, direct):
     assert integrator.stats["photons_stored"] > 100_000
 
 
-def sphere_scene(rho, intensity, R=1.0):
+def small_scene(origin, target, size=16, spp=1, fov=40, **objects):
+    """A scene dict with a perspective camera at ``origin`` looking at ``target`` and a
+    ``size`` x ``size`` box-filtered film, plus the given shapes and emitters."""
     return mi.load_dict({
         "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1],
+        "sensor": {"type": "perspective", "fov": fov,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=origin, target=target,
                                                               up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 16, "height": 16,
+                   "film": {"type": "hdrfilm", "width": size, "height": size,
                             "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": 4}},
-        "sphere": {"type": "sphere", "radius": R, "flip_normals": True,
-                   "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho}}},
-        "light": {"type": "point", "position": [0, 0, 0],
-                  "intensity": {"type": "rgb", "value": intensity}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        **objects,
     })
+
+
+def sphere_scene(rho, intensity, R=1.0):
+    return small_scene(
+        [0, 0, 0], [0, 0, 1], spp=4,
+        sphere={"type": "sphere", "radius": R, "flip_normals": True,
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho}}},
+        light={"type": "point", "position": [0, 0, 0],
+               "intensity": {"type": "rgb", "value": intensity}})
 
 
 @pytest.mark.parametrize("direct", ["photons", "nee"])
@@ -87,37 +95,24 @@ def test_closed_sphere_matches_analytic_radiance(direct):
     assert np.all(np.abs(img / expected - 1) < 0.2)
 
 
-def thin_wall_scene():
-    """A zero-thickness two-sided wall at z = 0, a point light at z = +1, the camera at z = -2
-    looking at the wall's unlit back. Photons lie on the front at the very points queried."""
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 30,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, -2], target=[0, 0, 0],
-                                                              up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 16, "height": 16},
-                   "sampler": {"type": "independent", "sample_count": 1}},
-        "wall": {"type": "rectangle",
-                 "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}},
-        "light": {"type": "point", "position": [0, 0, 1],
-                  "intensity": {"type": "rgb", "value": 5.0}},
-    })
+def thin_wall_scene(camera_z):
+    """A zero-thickness two-sided wall at z = 0 and a point light at z = +1. From
+    ``camera_z`` = -2 the camera sees the wall's unlit back, where photons lie on the front at
+    the very points queried; from +2 it sees the lit front."""
+    return small_scene(
+        [0, 0, camera_z], [0, 0, 0], fov=30,
+        wall={"type": "rectangle", "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}},
+        light={"type": "point", "position": [0, 0, 1],
+               "intensity": {"type": "rgb", "value": 5.0}})
 
 
 def test_no_light_leaks_through_a_thin_wall():
-    scene = thin_wall_scene()
     integrator = mi.load_dict({"type": "partpm", "photon_count": 20_000, "radius": 0.2})
-    img = render(scene, integrator)
+    img = render(thin_wall_scene(-2), integrator)
     assert integrator.stats["photons_stored"] > 2_000  # the lit side does hold photons
     assert np.all(img == 0), f"light leaked through the wall: max {img.max()}"
     # And the same wall seen from the lit side is bright.
-    scene_front = mi.load_dict({**{"type": "scene"}, "wall": {"type": "rectangle", "bsdf": {
-        "type": "twosided", "bsdf": {"type": "diffuse"}}}, "light": {
-        "type": "point", "position": [0, 0, 1], "intensity": {"type": "rgb", "value": 5.0}},
-        "sensor": {"type": "perspective", "fov": 30, "to_world": mi.ScalarTransform4f().look_at(
-            origin=[0, 0, 2], target=[0, 0, 0], up=[0, 1, 0]),
-            "film": {"type": "hdrfilm", "width": 16, "height": 16}}})
-    assert render(scene_front, integrator).mean() > 0.1
+    assert render(thin_wall_scene(+2), integrator).mean() > 0.1
 
 
 def test_same_seed_same_image_different_seed_differs():
@@ -183,15 +178,10 @@ def test_glossy_surfaces_evaluate_the_bsdf_per_photon(tmp_path):
 def test_scene_where_no_photon_can_be_stored(caplog):
     """A mirror sphere under a constant sky: nothing stores photons. partpm warns and renders
     the emitted light it can see (the sky, 1.0, through the mirror) instead of failing."""
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective",
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, -3], target=[0, 0, 0],
-                                                              up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 8, "height": 8}},
-        "sphere": {"type": "sphere", "bsdf": {"type": "conductor", "material": "none"}},
-        "sky": {"type": "constant"},
-    })
+    scene = small_scene(
+        [0, 0, -3], [0, 0, 0], size=8,
+        sphere={"type": "sphere", "bsdf": {"type": "conductor", "material": "none"}},
+        sky={"type": "constant"})
     integrator = mi.load_dict({"type": "partpm", "photon_count": 1000})
     with caplog.at_level("WARNING", logger="mi_partpm"):
         img = render(scene, integrator)
@@ -215,18 +205,13 @@ def test_every_emitter_kind_emits_photons(emitter):
     A diffuse ball on a floor: measured mean radiance within 3% of a 256-spp path render
     (fixed seeds, so this is bias, not noise: the fixed radius blurs the spot's cone edge and
     the ball's contact shadow); the bound is 6%."""
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective",
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 2, -3], target=[0, 0, 0],
-                                                              up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 16, "height": 16}},
-        "floor": {"type": "rectangle", "bsdf": {"type": "diffuse"},
-                  "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3)},
-        "ball": {"type": "sphere", "bsdf": {"type": "diffuse"},
-                 "to_world": mi.ScalarTransform4f().translate([0, 0.5, 0]).scale(0.5)},
-        "light": EMITTERS[emitter],
-    })
+    scene = small_scene(
+        [0, 2, -3], [0, 0, 0],
+        floor={"type": "rectangle", "bsdf": {"type": "diffuse"},
+               "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3)},
+        ball={"type": "sphere", "bsdf": {"type": "diffuse"},
+              "to_world": mi.ScalarTransform4f().translate([0, 0.5, 0]).scale(0.5)},
+        light=EMITTERS[emitter])
     img = render(scene, mi.load_dict({"type": "partpm", "photon_count": 50_000}), spp=16)
     ref = render(scene, mi.load_dict({"type": "path"}), seed=5, spp=256)
     assert np.all(np.isfinite(img)) and img.mean() > 0
