@@ -94,10 +94,14 @@ class PartPMIntegrator(mi.SamplingIntegrator):
 
     # ------------------------------------------------------------------ phases
 
+    def search_radius(self, scene: mi.Scene):
+        """The fixed radius r of eq. (2) for ``scene``."""
+        return fixed_radius(scene, self.params.radius, self.params.radius_fraction)
+
     def build_maps(self, scene: mi.Scene):
         """Steps 1 of figure 4: trace every map's photons and build its kd-tree."""
         p = self.params
-        self.radius = fixed_radius(scene, p.radius, p.radius_fraction)
+        self.radius = self.search_radius(scene)
         log.info("trace: emitting %d photons into %d maps ...", p.photon_count, self.map_count)
         t0 = time.perf_counter()
         photons = trace_photons(scene, p.photon_count, self.map_count, p.seed,
@@ -127,7 +131,7 @@ class PartPMIntegrator(mi.SamplingIntegrator):
             # Mitsuba's base render() dispatches back here once: let it do the film work.
             return super().render(scene, sensor, seed, spp, develop, evaluate)
         self.build_maps(scene)
-        log.info("estimate: radius %.4g, rendering ...", self.radius)
+        self.before_estimate()
         t0 = time.perf_counter()
         self._rendering = True
         try:
@@ -138,7 +142,14 @@ class PartPMIntegrator(mi.SamplingIntegrator):
         dr.sync_thread()
         self.stats["time_estimate"] = time.perf_counter() - t0
         log.info("estimate: %.2f s", self.stats["time_estimate"])
+        self.after_estimate()
         return image
+
+    def before_estimate(self):
+        log.info("estimate: radius %.4g, rendering ...", self.radius)
+
+    def after_estimate(self):
+        """Hook for subclasses: read statistics gathered during the estimate."""
 
     # ------------------------------------------------------------------ per sample
 

@@ -1,6 +1,7 @@
 """Density estimation: reflected radiance at a surface point from partitioned photon maps.
 
-Eq. (2) of the paper: with the same fixed radius r for every map,
+Eq. (1) of the paper is the conventional estimate over the k nearest photons (``pm``);
+eq. (2): with the same fixed radius r for every map,
 
     L_r(x, w) ~= 1/(pi r^2) * sum over maps i, sum over photons p of map i within r of x
                   of f_r(x, w_p, w) * dPhi_p
@@ -13,15 +14,53 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .kdtree import radius_query
+from .kdtree import knn_query, radius_query
 from .photonmap import PhotonMaps
 
-__all__ = ["radiance_estimate", "is_plain_diffuse"]
+__all__ = ["radiance_estimate", "knn_radiance_estimate", "is_plain_diffuse"]
 
 def is_plain_diffuse(flags):
     """True where the BSDF is diffuse reflection and nothing else (f_r = albedo / pi)."""
     varying = int(mi.BSDFFlags.Glossy) | int(mi.BSDFFlags.Delta) | int(mi.BSDFFlags.Transmission)
     return mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ((flags & varying) == 0)
+
+
+class _Estimator:
+    """What eq. (1) needs at a batch of query points, whatever chooses the photons.
+
+    For a plain diffuse BSDF, f_r is the same for every photon, so the photons' powers are
+    summed and multiplied by f_r once. Any other BSDF with a non-delta lobe (glossy, plastic's
+    diffuse base, diffuse transmission) is evaluated per photon: f_r = eval(w_p) / |cos w_p|.
+    """
+
+    def __init__(self, maps: PhotonMaps, si, bsdf, active):
+        self.maps, self.si, self.bsdf = maps, si, bsdf
+        self.ctx = mi.BSDFContext()
+        self.active = mi.Bool(active)
+        self.plain = is_plain_diffuse(bsdf.flags())
+        # The side of the surface the query sees: the shading normal turned towards the viewer.
+        self.facing = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
+        self.n_view = si.sh_frame.n * self.facing
+
+    def contribution(self, i, found):
+        """f_r * power of photon ``i`` (power alone for plain diffuse), 0 from the far side."""
+        maps, si = self.maps, self.si
+        wi_photon = dr.gather(mi.Vector3f, maps.direction, i, found)
+        power = dr.gather(mi.Spectrum, maps.power, i, found)
+        same_side = dr.dot(wi_photon, self.n_view) > 0
+        wo = si.to_local(wi_photon)
+        cos = dr.abs(mi.Frame3f.cos_theta(wo))
+        general = found & ~self.plain & (cos > 1e-6)
+        f = self.bsdf.eval(self.ctx, si, wo, general) / dr.select(general, cos, 1.0)
+        return dr.select(self.plain, dr.select(same_side, power, 0.0), f * power)
+
+    def radiance(self, total, radius2):
+        """1/(pi r^2) times the summed contributions (times f_r for plain diffuse)."""
+        f_plain = self.bsdf.eval(self.ctx, self.si, mi.Vector3f(0, 0, self.facing),
+                                 self.active & self.plain)
+        ok = self.active & (radius2 > 0) & dr.isfinite(radius2)
+        scale = dr.select(ok, dr.rcp(dr.pi * dr.select(ok, radius2, 1.0)), 0.0)
+        return dr.select(self.plain, f_plain * total, total) * scale
 
 
 def radiance_estimate(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius,
@@ -44,37 +83,24 @@ def radiance_estimate(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radiu
         Only maps first .. stop-1: one map's partial term of eq. (2). Default: all maps.
     with_stats : bool
         Also return the traversal statistics per query.
-
-    Notes
-    -----
-    For a plain diffuse BSDF, f_r is the same for every photon, so the photons' powers are
-    summed and multiplied by f_r once. Any other BSDF with a non-delta lobe (glossy, plastic's
-    diffuse base, diffuse transmission) is evaluated per photon: f_r = eval(w_p) / |cos w_p|.
     """
-    ctx = mi.BSDFContext()
-    active = mi.Bool(active)
-    plain = is_plain_diffuse(bsdf.flags())
-    # The side of the surface the query sees: the shading normal turned towards the viewer.
-    facing = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
-    n_view = si.sh_frame.n * facing
-
-    def contribution(i, found):
-        wi_photon = dr.gather(mi.Vector3f, maps.direction, i, found)
-        power = dr.gather(mi.Spectrum, maps.power, i, found)
-        same_side = dr.dot(wi_photon, n_view) > 0
-        wo = si.to_local(wi_photon)
-        cos = dr.abs(mi.Frame3f.cos_theta(wo))
-        general = found & ~plain & (cos > 1e-6)
-        f = bsdf.eval(ctx, si, wo, general) / dr.select(general, cos, 1.0)
-        return dr.select(plain, dr.select(same_side, power, 0.0), f * power)
-
-    result = radius_query(maps.forest, si.p, radius, contribution, mi.Spectrum, active,
-                          maps=map_range, with_stats=with_stats)
+    est = _Estimator(maps, si, bsdf, active)
+    result = radius_query(maps.forest, si.p, radius, est.contribution, mi.Spectrum,
+                          est.active, maps=map_range, with_stats=with_stats)
     total, stats = result if with_stats else (result, None)
-
-    # Plain diffuse: f_r from one evaluation at the normal on the viewer's side.
-    f_plain = bsdf.eval(ctx, si, mi.Vector3f(0, 0, facing), active & plain)
-    scale = 1.0 / (dr.pi * dr.square(mi.Float(radius)))
-    L = dr.select(plain, f_plain * total, total) * scale
-    L = dr.select(active, L, 0.0)
+    L = est.radiance(total, dr.square(mi.Float(radius)))
     return (L, stats) if with_stats else L
+
+
+def knn_radiance_estimate(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, k: int,
+                          max_radius=None, active=True, with_stats: bool = False):
+    """Conventional (Jensen) estimate: the k nearest photons, r = distance to the k-th.
+
+    Returns ``(L, result)``: the radiance and the :class:`~mi_partpm.kdtree.KnnResult`
+    (``radius2`` per query: the squared kNN radius, or ``max_radius**2`` where fewer than k
+    photons lie within ``max_radius``, as in Jensen's ``locate_photons``).
+    """
+    est = _Estimator(maps, si, bsdf, active)
+    res = knn_query(maps.forest, si.p, k, est.contribution, mi.Spectrum, max_radius,
+                    est.active, with_stats=with_stats)
+    return est.radiance(res.total, res.radius2), res

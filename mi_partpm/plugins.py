@@ -16,6 +16,8 @@ __all__ = ["register", "supported_variant", "check_variant", "PLUGINS"]
 #: Plugin name -> (module under mi_partpm.integrators, class name).
 PLUGINS = {
     "partpm": ("partpm", "PartPMIntegrator"),
+    # After partpm: pm subclasses it, so it must be reloaded after it on a variant change.
+    "pm": ("pm", "PMIntegrator"),
 }
 
 

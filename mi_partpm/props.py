@@ -97,8 +97,12 @@ class PhotonMapParams:
         return -1 if self.max_depth == UNLIMITED else self.max_depth
 
 
-def read_photon_map_params(props) -> PhotonMapParams:
-    """Read and check the shared props. Raises ValueError naming the bad one."""
+def read_photon_map_params(props, fixed_radius: bool = True) -> PhotonMapParams:
+    """Read and check the shared props. Raises ValueError naming the bad one.
+
+    ``fixed_radius=False`` (the kNN integrator ``pm``) leaves ``radius`` and
+    ``radius_fraction`` unread, so Mitsuba rejects them as unknown props.
+    """
     p = PhotonMapParams()
     p.photon_count = read_int(props, "photon_count", p.photon_count, low=1)
     max_depth = read_int(props, "max_depth", -1, allowed="= -1 (unlimited) or >= 1")
@@ -110,6 +114,8 @@ def read_photon_map_params(props) -> PhotonMapParams:
     p.seed = read_int(props, "seed", p.seed, low=0, high=2**63 - 1)
     p.direct = read_choice(props, "direct", p.direct, DIRECT_MODES)
     p.hide_emitters = read_bool(props, "hide_emitters", p.hide_emitters)
+    if not fixed_radius:
+        return p
     has_radius = props is not None and "radius" in props
     has_fraction = props is not None and "radius_fraction" in props
     if has_radius and has_fraction:

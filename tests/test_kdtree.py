@@ -1,4 +1,4 @@
-"""The kd-tree forest: structure, the fixed-radius query against scipy, eq. (2) invariance."""
+"""The kd-tree forest: structure, fixed-radius and kNN queries against scipy, eq. (2)."""
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -6,7 +6,7 @@ from scipy.spatial import cKDTree
 import drjit as dr
 import mitsuba as mi
 
-from mi_partpm.kdtree import build_forest, radius_query
+from mi_partpm.kdtree import build_forest, knn_neighbours, knn_query, radius_query
 from mi_partpm.photonmap import build_photon_maps
 from mi_partpm.photons import trace_photons
 from mi_partpm.estimate import radiance_estimate
@@ -84,6 +84,8 @@ def test_radius_query_matches_scipy_on_traced_photons():
 def test_degenerate_sets_duplicates_and_plane():
     pts = np.zeros((100, 3))
     _check_against_scipy(pts, np.zeros((2, 3)), 0.1)
+    # A map that is a single leaf (no internal node).
+    _check_against_scipy(np.random.default_rng(5).random((5, 3)), np.zeros((3, 3)), 0.9)
     rng = np.random.default_rng(4)
     plane = np.c_[rng.random((5000, 2)), np.zeros(5000)]
     _check_against_scipy(plane, plane[:500], 0.02)
@@ -117,3 +119,65 @@ def test_partition_invariance_eq2(n):
     parts = sum(radiance_estimate(split, si, bsdf, 0.1, active, map_range=(m, m + 1)).numpy()
                 for m in range(n))
     np.testing.assert_allclose(parts, a, rtol=1e-4, atol=1e-6 * a.max())
+
+
+def _check_knn_against_scipy(points, queries, k, max_radius=None, map_ids=None, n_maps=None):
+    """Same neighbours, same distances as cKDTree.query (distances to float32 rounding)."""
+    forest = build_forest(points, map_ids, n_maps)
+    dist, idx = knn_neighbours(forest, queries, k, max_radius)
+    bound = np.inf if max_radius is None else max_radius
+    ref_d, ref_i = cKDTree(points.astype(np.float32).astype(np.float64)).query(
+        queries.astype(np.float32), k, distance_upper_bound=bound)
+    ref_d, ref_i = ref_d.reshape(dist.shape), ref_i.reshape(idx.shape)
+    np.testing.assert_array_equal(np.isfinite(dist), np.isfinite(ref_d))
+    finite = np.isfinite(ref_d)
+    np.testing.assert_allclose(dist[finite], ref_d[finite], rtol=1e-5, atol=1e-7)
+    # Same neighbours wherever the k-th distance is not tied with the next (random data: all).
+    assert (idx == ref_i).mean() > 0.999, f"{(idx != ref_i).sum()} neighbours differ"
+    return forest, dist
+
+
+def test_knn_matches_scipy_query():
+    rng = np.random.default_rng(7)
+    pts = rng.random((20000, 3))
+    queries = rng.random((2000, 3))
+    _check_knn_against_scipy(pts, queries, 1)
+    _check_knn_against_scipy(pts, queries, 50)
+    # Over several maps, the k nearest of all of them (the same photons as one map).
+    _check_knn_against_scipy(pts, queries, 16, map_ids=rng.integers(0, 5, 20000), n_maps=5)
+
+
+def test_knn_max_radius_caps_the_search_like_jensen():
+    rng = np.random.default_rng(8)
+    pts = rng.random((3000, 3))
+    queries = np.r_[rng.random((500, 3)), [[5.0, 5.0, 5.0]]]   # the last one finds nothing
+    forest, dist = _check_knn_against_scipy(pts, queries, 12, max_radius=0.1)
+    q = mi.Point3f(*[np.asarray(queries[:, j], np.float32) for j in range(3)])
+    res = knn_query(forest, q, 12, lambda i, a: mi.Float(1.0), max_radius=0.1)
+    count, r2, total = res.count.numpy(), res.radius2.numpy(), res.total.numpy()
+    assert 0 < (count < 12).sum() < len(count), "want capped and uncapped queries both"
+    np.testing.assert_array_equal(count, np.isfinite(dist).sum(axis=1))
+    np.testing.assert_array_equal(total, count)
+    # Capped: r = max_radius; full: r = distance to the k-th photon.
+    np.testing.assert_allclose(np.sqrt(r2), np.where(count < 12, 0.1, dist[:, -1]), rtol=1e-5)
+
+
+def test_knn_on_traced_photons_and_degenerate_sets():
+    scene = mi_partpm_scene("cornell_box_diffuse")
+    photons = trace_photons(scene, 20000, 1, seed=1)
+    _check_knn_against_scipy(photons.position, photons.position[::9], 20)
+    rng = np.random.default_rng(9)
+    plane = np.c_[rng.random((4000, 2)), np.zeros(4000)]
+    _check_knn_against_scipy(plane, plane[:300] + [0, 0, 0.01], 8)
+    # k larger than the photon count: every photon, then "missing" entries.
+    dist, idx = knn_neighbours(build_forest(plane[:5]), plane[:2], 8)
+    assert np.isfinite(dist).sum(axis=1).tolist() == [5, 5] and (idx[:, 5:] == 5).all()
+    # All photons at one point: distances all equal, k of them taken.
+    dist, _ = knn_neighbours(build_forest(np.zeros((100, 3))), np.ones((3, 3)), 10)
+    np.testing.assert_allclose(dist, np.sqrt(3), rtol=1e-6)
+
+
+def test_knn_rejects_bad_k():
+    forest = build_forest(np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="k must be an integer >= 1, got 0"):
+        knn_query(forest, mi.Point3f(0, 0, 0), 0)
