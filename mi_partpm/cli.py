@@ -1,12 +1,16 @@
 """The ``partpm`` command.
 
-    partpm render SCENE [--integrator partpm|path] [--maps N] [--photons N]
+    partpm render SCENE [--integrator partpm|pm|path] [--maps N] [--photons N] [--k K]
                   [--radius R | --radius-fraction F] [--spp S] [--resolution WxH]
-                  [--seed S] [--variant V] -o OUT.exr
+                  [--seed S] [--data DIR] [--variant V] -o OUT.exr
+    partpm compare SCENE [--maps N] [--photons N] [--k K] [--resolution WxH] [--spp S]
+                  [--reference-spp S] [--data DIR] --out DIR
 
-SCENE is a built-in scene name (``partpm render --list``) or a Mitsuba XML file. Writes OUT.exr
-and a tone-mapped OUT.png and prints the time of each phase. Errors end with one line on
-stderr and exit status 2.
+SCENE is a built-in scene name (``partpm render --list``) or a Mitsuba XML file. ``render``
+writes OUT.exr and a tone-mapped OUT.png and prints the time of each phase. ``compare`` renders
+the conventional ``pm``, the partitioned ``partpm`` and a ``path`` reference and writes images,
+difference heat maps, a side-by-side sheet and metrics.json (the paper's figures 7-12).
+Errors end with one line on stderr and exit status 2.
 """
 from __future__ import annotations
 
@@ -59,84 +63,131 @@ def _positive_float(name, high=None):
     return parse
 
 
+def _scene_options(p, maps_default=8):
+    """Options shared by the subcommands that render a scene."""
+    p.add_argument("scene", nargs="?", help="built-in scene name or Mitsuba XML file")
+    p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
+    p.add_argument("--maps", type=_positive_int("--maps"),
+                   help=f"number of partial photon maps n (default {maps_default})")
+    p.add_argument("--photons", type=_positive_int("--photons"), default=100_000,
+                   help="photons emitted in total N (default 100000)")
+    p.add_argument("--k", type=_positive_int("--k"),
+                   help="photons per kNN estimate of pm")
+    p.add_argument("--direct", choices=("photons", "nee"), default="photons",
+                   help="direct light from the maps (paper) or by emitter sampling")
+    p.add_argument("--spp", type=_positive_int("--spp"), help="samples per pixel")
+    p.add_argument("--resolution", type=parse_resolution, help="film size WxH, e.g. 480x480")
+    p.add_argument("--seed", type=int, default=0, help="seed of photons and eye samples")
+    p.add_argument("--data", metavar="DIR",
+                   help="directory of scene data such as happy_buddha_20k.ply "
+                        "(default: $PARTPM_DATA)")
+    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
+    p.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="partpm", description=(
         "Partitioned photon maps for Mitsuba 3 (Tamura, Takizawa, Kobayashi)."))
     sub = parser.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("render", help="render a scene with partpm (or Mitsuba's path tracer)")
-    r.add_argument("scene", nargs="?", help="built-in scene name or Mitsuba XML file")
-    r.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
-    r.add_argument("--integrator", choices=("partpm", "path"), default="partpm")
-    r.add_argument("--maps", type=_positive_int("--maps"), default=8,
-                   help="number of partial photon maps n (default 8)")
-    r.add_argument("--photons", type=_positive_int("--photons"), default=100_000,
-                   help="photons emitted in total N (default 100000)")
+    r = sub.add_parser("render", help="render a scene with partpm, pm or Mitsuba's path tracer")
+    _scene_options(r)
+    r.add_argument("--integrator", choices=("partpm", "pm", "path"), default="partpm")
     g = r.add_mutually_exclusive_group()
     g.add_argument("--radius", type=_positive_float("--radius"),
-                   help="search radius in world units")
+                   help="search radius in world units (partpm)")
     g.add_argument("--radius-fraction", type=_positive_float("--radius-fraction", 1.0),
                    help="radius as a fraction of the scene's longest side (default 0.05)")
-    r.add_argument("--direct", choices=("photons", "nee"), default="photons",
-                   help="direct light from the maps (paper) or by emitter sampling")
+    r.add_argument("--max-radius", type=_positive_float("--max-radius"),
+                   help="cap of the kNN radius (pm; default: none)")
     r.add_argument("--max-depth", type=int, default=-1, help="longest path (-1: unlimited)")
-    r.add_argument("--spp", type=_positive_int("--spp"), help="samples per pixel")
-    r.add_argument("--resolution", type=parse_resolution, help="film size WxH, e.g. 480x480")
-    r.add_argument("--seed", type=int, default=0, help="seed of photons and eye samples")
-    r.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
     r.add_argument("-o", "--output", help="output EXR file (a PNG is written beside it)")
-    r.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
+    c = sub.add_parser("compare", help="pm vs partpm vs a path-traced reference "
+                                       "(the paper's figures 7-12)")
+    _scene_options(c)
+    c.add_argument("--radius-fraction", type=_positive_float("--radius-fraction", 1.0),
+                   default=0.05, help="r as a fraction of the scene's longest side "
+                                      "(default 0.05, the paper's 1/20)")
+    c.add_argument("--reference-spp", type=_positive_int("--reference-spp"), default=512,
+                   help="samples per pixel of the path-traced reference (default 512)")
+    c.add_argument("--out", help="output directory")
     return parser
 
 
-def _render(args) -> int:
-    import drjit as dr
+def _setup(args, needs_plugins=True):
+    """Choose the variant, import the plugins, answer --list, check SCENE. True: go on."""
     import mitsuba as mi
 
     from . import plugins
     if args.variant not in mi.variants():
         raise UsageError(f"--variant {args.variant!r} is not a Mitsuba variant; available: "
                          f"{', '.join(mi.variants())}")
-    if args.integrator == "partpm":
+    if needs_plugins:
         try:
             plugins.check_variant(args.variant)
         except ValueError as e:
             raise UsageError(str(e)) from None
     mi.set_variant(args.variant)
-    import mi_partpm
+    import mi_partpm  # noqa: F401  (registers the plugins)
     from .scenes import scene_names
 
     if args.list:
         print("\n".join(scene_names()))
-        return 0
+        return False
     if not args.scene:
-        raise UsageError("render needs a SCENE (a built-in name or an XML file); "
+        raise UsageError(f"{args.command} needs a SCENE (a built-in name or an XML file); "
                          f"built-in: {', '.join(scene_names())}")
+    return True
+
+
+def _render(args) -> int:
+    import drjit as dr
+    import mitsuba as mi
+
+    if not _setup(args, needs_plugins=args.integrator != "path"):
+        return 0
+    import mi_partpm
     if not args.output:
         raise UsageError("render needs -o OUT.exr")
     out = Path(args.output)
     if out.suffix.lower() != ".exr":
         raise UsageError(f"-o must name an .exr file, got {args.output!r}")
 
-    t0 = time.perf_counter()
-    try:
-        scene = mi_partpm.load_scene(args.scene, resolution=args.resolution, spp=args.spp)
-    except (FileNotFoundError, ValueError) as e:
-        raise UsageError(str(e)) from None
-    if not scene.emitters():
-        raise UsageError(f"scene {args.scene!r} has no emitter: nothing would be lit")
-    if args.integrator == "partpm":
-        desc = {"type": "partpm", "photon_count": args.photons, "map_count": args.maps,
-                "seed": args.seed, "max_depth": args.max_depth, "direct": args.direct}
-        if args.radius is not None:
-            desc["radius"] = args.radius
-        elif args.radius_fraction is not None:
-            desc["radius_fraction"] = args.radius_fraction
+    if args.integrator in ("partpm", "pm"):
+        desc = {"type": args.integrator, "photon_count": args.photons, "seed": args.seed,
+                "max_depth": args.max_depth, "direct": args.direct}
+        if args.integrator == "pm":
+            unused = [o for o, v in (("--maps", args.maps), ("--radius", args.radius),
+                                     ("--radius-fraction", args.radius_fraction)) if v]
+            if unused:
+                raise UsageError(f"{', '.join(unused)} do(es) not apply to --integrator pm "
+                                 f"(one map, k nearest photons: use --k, --max-radius)")
+            if args.k is not None:
+                desc["k"] = args.k
+            if args.max_radius is not None:
+                desc["max_radius"] = args.max_radius
+        else:
+            if args.k is not None or args.max_radius is not None:
+                raise UsageError("--k and --max-radius apply to --integrator pm only")
+            desc["map_count"] = args.maps or 8
+            if args.radius is not None:
+                desc["radius"] = args.radius
+            elif args.radius_fraction is not None:
+                desc["radius_fraction"] = args.radius_fraction
     else:
         desc = {"type": "path", "max_depth": args.max_depth}
     try:
         integrator = mi.load_dict(desc)
     except (ValueError, RuntimeError) as e:
-        raise UsageError(str(e).strip().splitlines()[-1]) from None
+        raise UsageError(_last_line(e)) from None
+    t0 = time.perf_counter()
+    try:
+        scene = mi_partpm.load_scene(args.scene, resolution=args.resolution, spp=args.spp,
+                                     data_dir=args.data)
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(str(e)) from None
+    if not scene.emitters():
+        raise UsageError(f"scene {args.scene!r} has no emitter: nothing would be lit")
     film = scene.sensors()[0].film()
     log = logging.getLogger("mi_partpm")
     log.info("scene %s: %dx%d, %s", args.scene, film.size()[0], film.size()[1], integrator)
@@ -159,9 +210,50 @@ def _render(args) -> int:
                 print(f"{phase:8} {stats[f'time_{phase}']:8.2f} s")
         print(f"render   {t2 - t1:8.2f} s (all phases)")
         if stats:
+            if "k" in stats:
+                search = (f"k = {stats['k']}, mean kNN radius "
+                          f"{stats['mean_knn_radius']:.4g}")
+            else:
+                search = f"radius {stats['radius']:.4g}"
             print(f"photons  {stats['photons_emitted']} emitted, {stats['photons_stored']} "
-                  f"stored in {stats['map_count']} maps, radius {stats['radius']:.4g}")
+                  f"stored in {stats['map_count']} maps, {search}")
         print(f"wrote    {out} and {png}")
+    return 0
+
+
+def _last_line(e: Exception) -> str:
+    """The message of an error raised inside a plugin (Mitsuba wraps it in a traceback)."""
+    line = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+    for prefix in ("ValueError: ", "RuntimeError: ", "FileNotFoundError: "):
+        if line.startswith(prefix):
+            line = line[len(prefix):]
+    return line
+
+
+def _compare(args) -> int:
+    if not _setup(args):
+        return 0
+    from .compare import CompareSettings, format_table, run_compare
+    if not args.out:
+        raise UsageError("compare needs --out DIR")
+    settings = CompareSettings(
+        scene=args.scene, maps=args.maps or 8, photons=args.photons,
+        resolution=args.resolution or (480, 480), spp=args.spp or 4,
+        reference_spp=args.reference_spp, radius_fraction=args.radius_fraction, k=args.k,
+        seed=args.seed, direct=args.direct, data_dir=args.data)
+    try:
+        settings.check()
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    try:
+        result = run_compare(settings, args.out,
+                             progress=None if args.quiet else lambda line: print(line,
+                                                                                 flush=True))
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(_last_line(e)) from None
+    if not args.quiet:
+        print(format_table(result))
+        print(f"wrote    {args.out}/ (comparison.png, metrics.json, images and heat maps)")
     return 0
 
 
@@ -172,6 +264,8 @@ def main(argv=None) -> int:
     try:
         if args.command == "render":
             return _render(args)
+        if args.command == "compare":
+            return _compare(args)
     except UsageError as e:
         print(f"partpm: error: {e}", file=sys.stderr)
         return 2

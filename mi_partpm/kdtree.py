@@ -264,22 +264,24 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
 def _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats):
     """The stackless traversal behind :func:`radius_query`, one lane per query point."""
     dev = forest.device()
+    width = dr.width(p)
     r = mi.Float(r)
     r2 = r * r
-    total = dr.zeros(result_type, dr.width(p))
+    total = dr.zeros(result_type, width)
 
-    active = mi.Bool(active) & (first < stop)
-    m = mi.UInt32(first)
-    node = mi.UInt32(0)
-    mode = mi.UInt32(_DESCEND)
-    i = mi.UInt32(0)
-    end = mi.UInt32(0)
+    # Every state variable has the query's width (a literal would make a 1-wide kernel).
+    active = dr.full(mi.Bool, first < stop, width) & mi.Bool(active)
+    m = dr.full(mi.UInt32, first, width)
+    node = dr.zeros(mi.UInt32, width)
+    mode = dr.full(mi.UInt32, _DESCEND, width)
+    i = dr.zeros(mi.UInt32, width)
+    end = dr.zeros(mi.UInt32, width)
     node_base = dr.gather(mi.UInt32, dev["node_base"], m, active)
     leaf_base = dr.gather(mi.UInt32, dev["leaf_base"], m, active)
     n_int = dr.gather(mi.UInt32, dev["internal_count"], m, active)
-    nodes_visited = mi.UInt32(0)
-    photons_tested = mi.UInt32(0)
-    photons_found = mi.UInt32(0)
+    nodes_visited = dr.zeros(mi.UInt32, width)
+    photons_tested = dr.zeros(mi.UInt32, width)
+    photons_found = dr.zeros(mi.UInt32, width)
     stop_u = mi.UInt32(stop)
 
     while dr.hint(active, label="partpm_radius_query"):
@@ -431,17 +433,18 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
     r2 = dr.zeros(mi.Float, width) + r2max
     count = dr.zeros(mi.UInt32, width)
 
-    active = mi.Bool(active) & (first < stop)
-    m = mi.UInt32(first)
-    node = mi.UInt32(0)
-    mode = mi.UInt32(_DESCEND)
-    i = mi.UInt32(0)
-    end = mi.UInt32(0)
+    # Every state variable has the query's width (a literal would make a 1-wide kernel).
+    active = dr.full(mi.Bool, first < stop, width) & mi.Bool(active)
+    m = dr.full(mi.UInt32, first, width)
+    node = dr.zeros(mi.UInt32, width)
+    mode = dr.full(mi.UInt32, _DESCEND, width)
+    i = dr.zeros(mi.UInt32, width)
+    end = dr.zeros(mi.UInt32, width)
     node_base = dr.gather(mi.UInt32, dev["node_base"], m, active)
     leaf_base = dr.gather(mi.UInt32, dev["leaf_base"], m, active)
     n_int = dr.gather(mi.UInt32, dev["internal_count"], m, active)
-    nodes_visited = mi.UInt32(0)
-    photons_tested = mi.UInt32(0)
+    nodes_visited = dr.zeros(mi.UInt32, width)
+    photons_tested = dr.zeros(mi.UInt32, width)
     stop_u = mi.UInt32(stop)
     ku = mi.UInt32(k)
 

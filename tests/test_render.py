@@ -7,17 +7,7 @@ import mitsuba as mi
 
 import mi_partpm
 from conftest import render, save_failure
-
-
-def display_rel_mse(img, ref):
-    """Per-pixel relative MSE of images clamped to the display range [0, 1].
-
-    Clamping keeps the emitter's pixels (radiance ~18, antialiased differently at 4 spp and
-    at 1024 spp) from swamping the error; the 0.01 in the denominator keeps near-black pixels
-    from dividing by zero.
-    """
-    a, b = np.minimum(img, 1.0), np.minimum(ref, 1.0)
-    return float(np.mean((a - b) ** 2 / (b ** 2 + 1e-2)))
+from mi_partpm.metrics import display_rel_mse
 
 
 @pytest.fixture(scope="module")

@@ -6,10 +6,14 @@ name                   what it is
 ``cornell_box``        the paper's second scene: Cornell box with a mirror and a glass
                        sphere (diffuse and specular surfaces)
 ``cornell_box_diffuse`` the Cornell box with its two white boxes, diffuse only
+``happy_buddha``       the paper's first scene: the Stanford Happy Buddha (20,062 triangles,
+                       diffuse) on a floor under an area light; needs the mesh file
+                       ``happy_buddha_20k.ply`` (see :mod:`mi_partpm.data`)
 =====================  ==================================================================
 
 Every built-in scene takes the parameters ``resx``, ``resy`` (film size, default 480) and
-``spp`` (samples per pixel, default 4).
+``spp`` (samples per pixel, default 4). ``happy_buddha`` also takes ``mesh`` (the PLY file),
+filled in from the data directory unless given.
 """
 from __future__ import annotations
 
@@ -18,9 +22,14 @@ from typing import Optional, Tuple
 
 import mitsuba as mi
 
+from ..data import find_data_file
+
 __all__ = ["scene_names", "scene_path", "load_scene"]
 
 _HERE = Path(__file__).resolve().parent
+
+#: Built-in scene -> {scene parameter: data file it names}.
+SCENE_DATA = {"happy_buddha": {"mesh": "happy_buddha_20k.ply"}}
 
 
 def scene_names():
@@ -47,7 +56,7 @@ def scene_path(scene: str) -> Path:
 
 
 def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
-               spp: Optional[int] = None, **params) -> mi.Scene:
+               spp: Optional[int] = None, data_dir=None, **params) -> mi.Scene:
     """Load a built-in scene by name, or a scene file by path.
 
     Parameters
@@ -58,17 +67,27 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
         Film size, passed as the scene parameters ``resx`` and ``resy``.
     spp : int, optional
         Samples per pixel, passed as the scene parameter ``spp``.
+    data_dir : path, optional
+        Directory holding the data files of a built-in scene (default: ``$PARTPM_DATA``).
     **params
         Further ``$name`` parameters of the scene file.
 
     Raises
     ------
     FileNotFoundError
-        The scene does not exist.
+        The scene does not exist, or a data file it needs (a mesh) is missing: the message
+        says where to get it and where to put it.
     ValueError
         The file does not parse, or a parameter is not one the file takes.
     """
     path = scene_path(scene)
+    if path.parent == _HERE:
+        for param, name in SCENE_DATA.get(path.stem, {}).items():
+            if param not in params:
+                params[param] = find_data_file(name, data_dir)
+            elif not Path(params[param]).is_file():
+                raise FileNotFoundError(f"{param} {str(params[param])!r} of scene "
+                                        f"{path.stem!r} is not a file")
     if resolution is not None:
         params["resx"], params["resy"] = int(resolution[0]), int(resolution[1])
     if spp is not None:
