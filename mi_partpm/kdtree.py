@@ -260,6 +260,24 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     return _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats)
 
 
+def _walk_start(dev, width, first, stop, active):
+    """Initial state of a walk over maps first .. stop-1: at the root of map ``first``.
+
+    Every state variable has the query's width (a literal would make a 1-wide kernel).
+    Returns active, map, node, mode, photon index, leaf end, the map's node base, leaf base
+    and internal-node count, and the two traversal counters.
+    """
+    active = dr.full(mi.Bool, first < stop, width) & mi.Bool(active)
+    m = dr.full(mi.UInt32, first, width)
+    zero = dr.zeros(mi.UInt32, width)
+    return (active, m, mi.UInt32(zero), dr.full(mi.UInt32, _DESCEND, width), mi.UInt32(zero),
+            mi.UInt32(zero),
+            dr.gather(mi.UInt32, dev["node_base"], m, active),
+            dr.gather(mi.UInt32, dev["leaf_base"], m, active),
+            dr.gather(mi.UInt32, dev["internal_count"], m, active),
+            mi.UInt32(zero), mi.UInt32(zero))
+
+
 @dr.syntax
 def _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats):
     """The stackless traversal behind :func:`radius_query`, one lane per query point."""
@@ -269,18 +287,8 @@ def _walk(forest, p, r, contribution, result_type, active, first, stop, with_sta
     r2 = r * r
     total = dr.zeros(result_type, width)
 
-    # Every state variable has the query's width (a literal would make a 1-wide kernel).
-    active = dr.full(mi.Bool, first < stop, width) & mi.Bool(active)
-    m = dr.full(mi.UInt32, first, width)
-    node = dr.zeros(mi.UInt32, width)
-    mode = dr.full(mi.UInt32, _DESCEND, width)
-    i = dr.zeros(mi.UInt32, width)
-    end = dr.zeros(mi.UInt32, width)
-    node_base = dr.gather(mi.UInt32, dev["node_base"], m, active)
-    leaf_base = dr.gather(mi.UInt32, dev["leaf_base"], m, active)
-    n_int = dr.gather(mi.UInt32, dev["internal_count"], m, active)
-    nodes_visited = dr.zeros(mi.UInt32, width)
-    photons_tested = dr.zeros(mi.UInt32, width)
+    (active, m, node, mode, i, end, node_base, leaf_base, n_int, nodes_visited,
+     photons_tested) = _walk_start(dev, width, first, stop, active)
     photons_found = dr.zeros(mi.UInt32, width)
     stop_u = mi.UInt32(stop)
 
@@ -433,18 +441,8 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
     r2 = dr.zeros(mi.Float, width) + r2max
     count = dr.zeros(mi.UInt32, width)
 
-    # Every state variable has the query's width (a literal would make a 1-wide kernel).
-    active = dr.full(mi.Bool, first < stop, width) & mi.Bool(active)
-    m = dr.full(mi.UInt32, first, width)
-    node = dr.zeros(mi.UInt32, width)
-    mode = dr.full(mi.UInt32, _DESCEND, width)
-    i = dr.zeros(mi.UInt32, width)
-    end = dr.zeros(mi.UInt32, width)
-    node_base = dr.gather(mi.UInt32, dev["node_base"], m, active)
-    leaf_base = dr.gather(mi.UInt32, dev["leaf_base"], m, active)
-    n_int = dr.gather(mi.UInt32, dev["internal_count"], m, active)
-    nodes_visited = dr.zeros(mi.UInt32, width)
-    photons_tested = dr.zeros(mi.UInt32, width)
+    (active, m, node, mode, i, end, node_base, leaf_base, n_int, nodes_visited,
+     photons_tested) = _walk_start(dev, width, first, stop, active)
     stop_u = mi.UInt32(stop)
     ku = mi.UInt32(k)
 
