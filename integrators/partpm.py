@@ -6,12 +6,14 @@ import time
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
+from mi_partpm import mpi
 from mi_partpm.estimate import radiance_estimate
 from mi_partpm.eyepath import eye_path_radiance
 from mi_partpm.photonmap import build_photon_maps, fixed_radius
-from mi_partpm.photons import trace_photons
-from mi_partpm.props import read_int, read_photon_map_params, UNLIMITED
+from mi_partpm.photons import map_sizes, trace_photons
+from mi_partpm.props import read_choice, read_int, read_photon_map_params, UNLIMITED
 
 log = logging.getLogger("mi_partpm")
 
@@ -66,6 +68,11 @@ class PartPMIntegrator(mi.SamplingIntegrator):
        * - hide_emitters
          - |bool|
          - Emitters seen directly by the camera are black. (Default: false)
+       * - backend
+         - |string|
+         - ``local``: all maps in this process; ``mpi``: inside ``mpiexec -n P``, rank j
+           traces, builds and queries maps j, j+P, ... and one MPI reduction sums the partial
+           images onto rank 0 (P <= map_count). (Default: local)
 
     Photons are stored on surfaces with a non-delta (diffuse or glossy) lobe; mirror and glass
     only redirect them. Eye paths follow delta lobes to the surfaces with a non-delta lobe,
@@ -87,6 +94,12 @@ class PartPMIntegrator(mi.SamplingIntegrator):
         self.params = read_photon_map_params(props)
         self.map_count = read_int(props, "map_count", 1, low=1, high=self.params.photon_count,
                                   allowed=f"in [1, photon_count = {self.params.photon_count}]")
+        self.backend = read_choice(props, "backend", "local", ("local", "mpi"))
+        self.comm = None
+        if self.backend == "mpi":
+            self.comm = mpi.comm_world()
+            mpi.check_ranks(self.comm.size, self.map_count)
+            mpi.share_cores(self.comm)
         self.maps = None
         self.radius = None
         self.stats = {}
@@ -98,16 +111,27 @@ class PartPMIntegrator(mi.SamplingIntegrator):
         """The fixed radius r of eq. (2) for ``scene``."""
         return fixed_radius(scene, self.params.radius, self.params.radius_fraction)
 
+    def owned_maps(self):
+        """The maps this process traces and queries: all, or this MPI rank's share."""
+        if self.comm is None:
+            return np.arange(self.map_count)
+        return mpi.owned_maps(self.comm.rank, self.comm.size, self.map_count)
+
     def build_maps(self, scene: mi.Scene):
-        """Steps 1 of figure 4: trace every map's photons and build its kd-tree."""
+        """Steps 1 of figure 4: trace every (owned) map's photons and build its kd-tree."""
         p = self.params
         self.radius = self.search_radius(scene)
+        owned = self.owned_maps()
         log.info("trace: emitting %d photons into %d maps ...", p.photon_count, self.map_count)
         t0 = time.perf_counter()
         photons = trace_photons(scene, p.photon_count, self.map_count, p.seed,
                                 p.photon_depth, p.rr_depth,
+                                maps=None if self.comm is None else owned,
                                 min_bounce=2 if p.direct == "nee" else 1,
                                 progress=lambda line: log.debug("trace: %s", line))
+        if self.comm is not None:
+            # This rank's maps become its local maps 0 .. len(owned)-1.
+            photons = photons.with_maps(np.searchsorted(owned, photons.map_id), len(owned))
         t1 = time.perf_counter()
         self.maps = build_photon_maps(photons)
         dr.eval(self.maps.direction, self.maps.power)
@@ -117,19 +141,42 @@ class PartPMIntegrator(mi.SamplingIntegrator):
                         "BSDF lit by its emitters; only emitted light will show")
         self.stats = {
             "photons_emitted": p.photon_count, "photons_stored": len(photons),
-            "map_count": self.map_count, "radius": self.radius,
+            "photons_traced": int(map_sizes(p.photon_count, self.map_count)[owned].sum()),
+            "map_count": self.map_count, "maps_owned": owned.tolist(), "radius": self.radius,
             "map_bytes": self.maps.nbytes, "time_trace": t1 - t0, "time_build": t2 - t1,
         }
-        log.info("trace: %d photons emitted, %d stored in %d maps (%.2f s)", p.photon_count,
-                 len(photons), self.map_count, t1 - t0)
-        log.info("build: %d kd-trees, %.1f MB (%.2f s)", self.map_count,
+        log.info("trace: %d photons emitted, %d stored in %d maps (%.2f s)",
+                 self.stats["photons_traced"], len(photons), len(owned), t1 - t0)
+        log.info("build: %d kd-trees, %.1f MB (%.2f s)", len(owned),
                  self.maps.nbytes / 1e6, t2 - t1)
         return self.maps
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        """Trace and build the maps, then render. With ``backend="mpi"`` rank 0 returns the
+        gathered image and every other rank its partial image (its maps' terms of eq. 2);
+        ``stats["ranks"]`` on rank 0 lists every rank's figures."""
         if self._rendering:
             # Mitsuba's base render() dispatches back here once: let it do the film work.
             return super().render(scene, sensor, seed, spp, develop, evaluate)
+        if self.comm is None:
+            return self._render_here(scene, sensor, seed, spp, develop, evaluate)
+        with mpi.abort_on_error(self.comm):
+            image = self._render_here(scene, sensor, seed, spp, develop, evaluate)
+            total, wait, seconds, nbytes = mpi.reduce_image(self.comm, np.array(image))
+            self.stats.update(time_wait=wait, time_reduce=seconds, reduce_bytes=nbytes,
+                              rank=self.comm.rank, ranks=None)
+            log.info("reduce: %d bytes to rank 0 (%.3f s, after waiting %.3f s)", nbytes,
+                     seconds, wait)
+            ranks = self.comm.gather(dict(self.stats), root=0)   # reporting only
+            if self.comm.rank == 0:
+                # Rank 0 reports the whole job; its own figures stay in ranks[0].
+                self.stats.update(ranks=ranks, photons_stored=sum(r["photons_stored"]
+                                                                  for r in ranks),
+                                  map_bytes=sum(r["map_bytes"] for r in ranks))
+                return mi.TensorXf(total)
+            return image
+
+    def _render_here(self, scene, sensor, seed, spp, develop, evaluate):
         self.build_maps(scene)
         self.before_estimate()
         t0 = time.perf_counter()
@@ -161,8 +208,11 @@ class PartPMIntegrator(mi.SamplingIntegrator):
             raise RuntimeError("partpm: sample() called before the photon maps were built; "
                                "render through render() / mi.render()")
         p = self.params
+        # Emission and direct light belong to one rank only; the maps' terms to every rank.
+        emission = 1.0 if self.comm is None or self.comm.rank == 0 else 0.0
         L, valid = eye_path_radiance(scene, sampler, ray, self.estimate, p.max_depth,
-                                     p.rr_depth, p.direct == "nee", p.hide_emitters, active)
+                                     p.rr_depth, p.direct == "nee", p.hide_emitters, active,
+                                     emission)
         return L, valid, []
 
     def aov_names(self):
@@ -175,4 +225,5 @@ class PartPMIntegrator(mi.SamplingIntegrator):
         depth = -1 if p.max_depth == UNLIMITED else p.max_depth
         return (f"PartPMIntegrator[photon_count = {p.photon_count}, map_count = "
                 f"{self.map_count}, {radius}, max_depth = {depth}, rr_depth = {p.rr_depth}, "
-                f"seed = {p.seed}, direct = {p.direct}, hide_emitters = {p.hide_emitters}]")
+                f"seed = {p.seed}, direct = {p.direct}, hide_emitters = {p.hide_emitters}, "
+                f"backend = {self.backend}]")

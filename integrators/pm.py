@@ -60,6 +60,7 @@ class PMIntegrator(partpm.PartPMIntegrator):
         has_cap = props is not None and "max_radius" in props
         self.max_radius = read_float(props, "max_radius", None, low=0.0) if has_cap else None
         self.map_count = 1
+        self.backend, self.comm = "local", None
         self.maps = None
         self.radius = None
         self.stats = {}

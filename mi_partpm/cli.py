@@ -15,6 +15,7 @@ Errors end with one line on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import time
@@ -100,6 +101,11 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--max-radius", type=_positive_float("--max-radius"),
                    help="cap of the kNN radius (pm; default: none)")
     r.add_argument("--max-depth", type=int, default=-1, help="longest path (-1: unlimited)")
+    r.add_argument("--backend", choices=("local", "mpi"), default="local",
+                   help="where the maps run: this process, or the ranks of an MPI job "
+                        "(mpiexec -n P partpm render ... --backend mpi)")
+    r.add_argument("--stats-json", metavar="FILE",
+                   help="also write the run's figures (per rank with --backend mpi) as JSON")
     r.add_argument("-o", "--output", help="output EXR file (a PNG is written beside it)")
 
     c = sub.add_parser("compare", help="pm vs partpm vs a path-traced reference "
@@ -111,6 +117,21 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--reference-spp", type=_positive_int("--reference-spp"), default=512,
                    help="samples per pixel of the path-traced reference (default 512)")
     c.add_argument("--out", help="output directory")
+
+    m = sub.add_parser("scaling", help="strong scaling of the MPI backend over P ranks")
+    m.add_argument("scene", help="built-in scene name or Mitsuba XML file")
+    m.add_argument("--ranks", default="1,2", help="comma-separated rank counts P (default 1,2)")
+    m.add_argument("--maps", type=_positive_int("--maps"), default=8,
+                   help="number of partial photon maps n (default 8)")
+    m.add_argument("--photons", type=_positive_int("--photons"), default=100_000)
+    m.add_argument("--resolution", type=parse_resolution, default=(480, 480))
+    m.add_argument("--spp", type=_positive_int("--spp"), default=4)
+    m.add_argument("--repeats", type=_positive_int("--repeats"), default=3,
+                   help="runs per P; the table shows medians (default 3)")
+    m.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
+    m.add_argument("--hostfile", help="MPI hostfile, passed to mpiexec -f (clusters)")
+    m.add_argument("--out", required=True, help="output directory (CSV, JSON, images)")
+    m.add_argument("-q", "--quiet", action="store_true", help="print only errors")
     return parser
 
 
@@ -170,12 +191,16 @@ def _render(args) -> int:
             if args.k is not None or args.max_radius is not None:
                 raise UsageError("--k and --max-radius apply to --integrator pm only")
             desc["map_count"] = args.maps or 8
+            desc["backend"] = args.backend
             if args.radius is not None:
                 desc["radius"] = args.radius
             elif args.radius_fraction is not None:
                 desc["radius_fraction"] = args.radius_fraction
     else:
         desc = {"type": "path", "max_depth": args.max_depth}
+    if args.backend == "mpi" and args.integrator != "partpm":
+        raise UsageError("--backend mpi needs --integrator partpm (the maps are what the ranks "
+                         "share out)")
     try:
         integrator = mi.load_dict(desc)
     except (ValueError, RuntimeError) as e:
@@ -196,13 +221,21 @@ def _render(args) -> int:
     dr.eval(image)
     dr.sync_thread()
     t2 = time.perf_counter()
+    stats = getattr(integrator, "stats", {})
+    if getattr(integrator, "comm", None) is not None and integrator.comm.rank != 0:
+        return 0    # rank 0 holds the gathered image and writes it
 
+    if args.stats_json:
+        Path(args.stats_json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.stats_json).write_text(json.dumps(
+            {"time_load": t1 - t0, "time_render": t2 - t1, "scene": args.scene,
+             "integrator": args.integrator, "backend": args.backend,
+             "resolution": list(film.size()), **stats}, indent=2, default=str) + "\n")
     out.parent.mkdir(parents=True, exist_ok=True)
     bitmap = mi.Bitmap(image)
     bitmap.write(str(out))
     png = out.with_suffix(".png")
     mi.util.write_bitmap(str(png), image, write_async=False)
-    stats = getattr(integrator, "stats", {})
     if not args.quiet:
         print(f"load     {t1 - t0:8.2f} s")
         for phase in ("trace", "build", "estimate"):
@@ -217,8 +250,25 @@ def _render(args) -> int:
                 search = f"radius {stats['radius']:.4g}"
             print(f"photons  {stats['photons_emitted']} emitted, {stats['photons_stored']} "
                   f"stored in {stats['map_count']} maps, {search}")
+        if stats.get("ranks"):
+            print(format_ranks(stats["ranks"]))
         print(f"wrote    {out} and {png}")
     return 0
+
+
+def format_ranks(ranks) -> str:
+    """Per-rank figures of an MPI render as a small table."""
+    lines = [f"{'rank':>4} {'maps':>10} {'photons':>9} {'stored':>9} {'tree MB':>8} "
+             f"{'trace s':>8} {'build s':>8} {'estim s':>8} {'wait s':>7} {'reduce s':>8} "
+             f"{'reduce MB':>9}"]
+    for j, r in enumerate(ranks):
+        maps = ",".join(str(m) for m in r["maps_owned"])
+        maps = maps if len(maps) <= 10 else maps[:8] + ".."
+        lines.append(f"{j:4d} {maps:>10} {r['photons_traced']:9d} {r['photons_stored']:9d} "
+                     f"{r['map_bytes'] / 1e6:8.2f} {r['time_trace']:8.2f} "
+                     f"{r['time_build']:8.2f} {r['time_estimate']:8.2f} {r['time_wait']:7.3f} "
+                     f"{r['time_reduce']:8.4f} {r['reduce_bytes'] / 1e6:9.2f}")
+    return "\n".join(lines)
 
 
 def _last_line(e: Exception) -> str:
@@ -257,6 +307,26 @@ def _compare(args) -> int:
     return 0
 
 
+def _scaling(args) -> int:
+    from .scaling import format_scaling, run_scaling
+    try:
+        ranks = [int(v) for v in args.ranks.split(",")]
+    except ValueError:
+        raise UsageError(f"--ranks must be comma-separated integers, got {args.ranks!r}") \
+            from None
+    extra = ["-f", args.hostfile] if args.hostfile else []
+    try:
+        rows = run_scaling(args.scene, ranks, args.maps, args.out, args.photons,
+                           args.resolution, args.spp, args.repeats, args.data, extra,
+                           progress=None if args.quiet else lambda s: print(s, flush=True))
+    except (FileNotFoundError, ValueError, RuntimeError) as e:
+        raise UsageError(str(e)) from None
+    if not args.quiet:
+        print(format_scaling(rows))
+        print(f"wrote    {args.out}/scaling.csv and scaling.json")
+    return 0
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING if getattr(args, "quiet", False) else logging.INFO,
@@ -266,6 +336,8 @@ def main(argv=None) -> int:
             return _render(args)
         if args.command == "compare":
             return _compare(args)
+        if args.command == "scaling":
+            return _scaling(args)
     except UsageError as e:
         print(f"partpm: error: {e}", file=sys.stderr)
         return 2

@@ -30,7 +30,7 @@ def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction
 @dr.syntax
 def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
                       estimate: Callable, max_depth: int, rr_depth: int, nee: bool,
-                      hide_emitters: bool, active=True):
+                      hide_emitters: bool, active=True, emission: float = 1.0):
     """Radiance along ``ray``: emission plus photon-map estimates at non-delta hits.
 
     Parameters
@@ -45,6 +45,11 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
         Add direct light by emitter sampling (the maps then hold indirect light only).
     hide_emitters : bool
         Emitters seen directly by the camera are black.
+    emission : float
+        Weight of the terms that do not come from the photon maps (emission, and direct light
+        with ``nee``): 1, or 0 on all ranks but one of a distributed render, so that the ranks'
+        partial images add up to the image. They are still evaluated, so every rank draws the
+        same random numbers and follows the same eye paths.
 
     Returns
     -------
@@ -67,7 +72,7 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
         # Emission seen by the camera, directly or through delta bounces.
         emitter = si.emitter(scene, active)
         show = active & (emitter != None) & ((depth > 0) | (not hide_emitters))  # noqa: E711
-        L += dr.select(show, beta * emitter.eval(si, show), 0.0)
+        L += dr.select(show, beta * emitter.eval(si, show), 0.0) * emission
 
         active &= si.is_valid()
         bsdf = si.bsdf(ray)
@@ -77,7 +82,7 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
         smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth)
         L += beta * estimate(si, bsdf, smooth)
         if nee:
-            L += beta * direct_light(scene, sampler, si, bsdf, smooth)
+            L += beta * direct_light(scene, sampler, si, bsdf, smooth) * emission
 
         # Follow the delta lobes (mirror, glass, plastic's coat).
         follow = active & mi.has_flag(flags, mi.BSDFFlags.Delta) & (depth + 1 < max_depth)

@@ -1,0 +1,95 @@
+"""The MPI backend: the same image as the local backend, clear errors, no hang on failure."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mitsuba as mi
+
+from mi_partpm.cli import main
+from mi_partpm.scaling import find_mpiexec
+
+HERE = Path(__file__).parent
+RENDER = ["cornell_box", "--maps", "5", "--photons", "20000", "--resolution", "48x40",
+          "--spp", "2", "--seed", "3"]
+
+
+def _mpi(n, *args, timeout=300):
+    cmd = [find_mpiexec(), "-n", str(n), sys.executable, *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+
+
+def _exr(path):
+    return np.array(mi.Bitmap(str(path)), dtype=np.float64)
+
+
+@pytest.mark.parametrize("direct", ["photons", "nee"])
+def test_mpi_two_ranks_give_the_local_image(tmp_path, direct):
+    """Rank j traces maps j, j+2, ... from their own streams; the reduction of the partial
+    images must be the local image to float rounding (1e-5 relative; measured 4e-6).
+    With nee, emission and direct light come from rank 0 only."""
+    local = tmp_path / "local.exr"
+    assert main(["render", *RENDER, "--direct", direct, "-q", "-o", str(local)]) == 0
+    out = tmp_path / "mpi.exr"
+    stats = tmp_path / "stats.json"
+    done = _mpi(2, "-m", "mi_partpm.cli", "render", *RENDER, "--direct", direct,
+                "--backend", "mpi", "-o", str(out), "--stats-json", str(stats))
+    assert done.returncode == 0, done.stderr
+    a, b = _exr(local), _exr(out)
+    rel = np.abs(b - a) / np.maximum(np.abs(a), 1e-3)
+    print(f"mpi vs local ({direct}): max relative difference {rel.max():.2e}")
+    assert a.mean() > 0.05 and rel.max() < 1e-5
+    # Per-rank figures: rank 0 owns maps 0, 2, 4 and rank 1 maps 1, 3; 20000 photons in 5
+    # maps of 4000; both send one image (48 x 40 x 3 channels float32) to the reduction.
+    s = json.loads(stats.read_text())
+    ranks = s["ranks"]
+    assert [r["maps_owned"] for r in ranks] == [[0, 2, 4], [1, 3]]
+    assert [r["photons_traced"] for r in ranks] == [12000, 8000]
+    assert s["photons_stored"] == sum(r["photons_stored"] for r in ranks)
+    assert all(r["reduce_bytes"] == 48 * 40 * 3 * 4 for r in ranks)
+    assert all(r["time_reduce"] >= 0 and r["map_bytes"] > 0 for r in ranks)
+    assert "reduce MB" in done.stdout   # the per-rank table
+
+
+def test_mpi_more_ranks_than_maps_is_a_clear_error(tmp_path):
+    done = _mpi(3, "-m", "mi_partpm.cli", "render", "cornell_box", "--maps", "2",
+                "--resolution", "8x8", "--backend", "mpi", "-o", str(tmp_path / "x.exr"))
+    assert done.returncode != 0
+    assert "the MPI job has 3 ranks but map_count is 2" in done.stderr
+
+
+def test_a_failing_rank_aborts_the_job_with_its_message():
+    done = _mpi(2, str(HERE / "mpi_scripts" / "failing_rank.py"), timeout=120)
+    assert done.returncode != 0
+    assert "error on MPI rank 1 of 2" in done.stderr
+    assert "cannot allocate the photon map (simulated)" in done.stderr
+    assert "finished" not in done.stdout
+
+
+def test_mpi_backend_without_mpi4py_says_what_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "mpi4py", None)    # import mpi4py now fails
+    with pytest.raises(Exception, match=r"backend 'mpi' needs mpi4py .*pip install mpi4py "
+                                        r"mpich"):
+        mi.load_dict({"type": "partpm", "map_count": 2, "backend": "mpi"})
+
+
+def test_backend_prop_is_checked():
+    with pytest.raises(Exception, match=r"backend must be one of 'local', 'mpi', got 'gpu'"):
+        mi.load_dict({"type": "partpm", "backend": "gpu"})
+
+
+def test_scaling_command_small(tmp_path, capsys):
+    assert main(["scaling", "cornell_box_diffuse", "--ranks", "1,2", "--maps", "2",
+                 "--photons", "4000", "--resolution", "16x16", "--spp", "1", "--repeats", "1",
+                 "--out", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert "effic." in text
+    rows = json.loads((tmp_path / "scaling.json").read_text())
+    assert [r["ranks"] for r in rows] == [1, 2]
+    assert rows[1]["max_rel_diff_vs_first"] < 1e-5
+    assert main(["scaling", "cornell_box", "--ranks", "1,3", "--maps", "2",
+                 "--out", str(tmp_path)]) == 2
+    assert "every P in --ranks must be in [1, maps = 2], got 3" in capsys.readouterr().err
