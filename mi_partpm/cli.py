@@ -118,6 +118,24 @@ def _parser() -> argparse.ArgumentParser:
                    help="samples per pixel of the path-traced reference (default 512)")
     c.add_argument("--out", help="output directory")
 
+    e = sub.add_parser("speedup", help="the paper's experiment: per-map density-estimation "
+                                       "time vs the number of maps (figures 5-6)")
+    e.add_argument("scene", help="built-in scene name or Mitsuba XML file")
+    e.add_argument("--maps", default="1,2,4,8,16,32",
+                   help="comma-separated map counts n (default 1,2,4,8,16,32)")
+    e.add_argument("--photons", type=_positive_int("--photons"), default=100_000)
+    e.add_argument("--resolution", type=parse_resolution, default=(480, 480))
+    e.add_argument("--spp", type=_positive_int("--spp"), default=1)
+    e.add_argument("--repeats", type=_positive_int("--repeats"), default=3,
+                   help="timed passes over every map (default 3); medians are reported")
+    e.add_argument("--radius-fraction", type=_positive_float("--radius-fraction", 1.0),
+                   default=0.05)
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
+    e.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
+    e.add_argument("--out", required=True, help="output directory (CSV, JSON, plot, workloads)")
+    e.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
     m = sub.add_parser("scaling", help="strong scaling of the MPI backend over P ranks")
     m.add_argument("scene", help="built-in scene name or Mitsuba XML file")
     m.add_argument("--ranks", default="1,2", help="comma-separated rank counts P (default 1,2)")
@@ -307,13 +325,37 @@ def _compare(args) -> int:
     return 0
 
 
+def _int_list(option, text):
+    try:
+        values = [int(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or min(values) < 1:
+        raise UsageError(f"{option} must be comma-separated integers >= 1, got {text!r}")
+    return values
+
+
+def _speedup(args) -> int:
+    args.list, args.command = False, "speedup"
+    _setup(args)
+    from .speedup import format_speedup, run_speedup
+    maps = _int_list("--maps", args.maps)
+    try:
+        result = run_speedup(args.scene, maps, args.out, args.photons, args.resolution,
+                             args.spp, args.repeats, args.radius_fraction, args.seed,
+                             args.data, progress=None if args.quiet else
+                             lambda line: print(line, flush=True))
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(str(e)) from None
+    if not args.quiet:
+        print(format_speedup(result))
+        print(f"wrote    {args.out}/speedup.csv, speedup.json, speedup.png and workloads/")
+    return 0
+
+
 def _scaling(args) -> int:
     from .scaling import format_scaling, run_scaling
-    try:
-        ranks = [int(v) for v in args.ranks.split(",")]
-    except ValueError:
-        raise UsageError(f"--ranks must be comma-separated integers, got {args.ranks!r}") \
-            from None
+    ranks = _int_list("--ranks", args.ranks)
     extra = ["-f", args.hostfile] if args.hostfile else []
     try:
         rows = run_scaling(args.scene, ranks, args.maps, args.out, args.photons,
@@ -338,6 +380,8 @@ def main(argv=None) -> int:
             return _compare(args)
         if args.command == "scaling":
             return _scaling(args)
+        if args.command == "speedup":
+            return _speedup(args)
     except UsageError as e:
         print(f"partpm: error: {e}", file=sys.stderr)
         return 2

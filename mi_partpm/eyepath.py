@@ -13,7 +13,7 @@ from typing import Callable
 import drjit as dr
 import mitsuba as mi
 
-__all__ = ["eye_path_radiance", "direct_light"]
+__all__ = ["eye_path_radiance", "direct_light", "first_estimate_hits"]
 
 
 def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf,
@@ -100,3 +100,52 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
         active = follow
 
     return L, valid
+
+
+def first_estimate_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth: int = 16,
+                        sensor: int = 0):
+    """Where each eye path first needs a density estimate: its first non-delta hit.
+
+    One path per sample (``spp`` per pixel, pixel-major), through the camera and along
+    mirror and glass (delta) lobes, as :func:`eye_path_radiance` follows them. Paths that
+    leave the scene, or stay on delta surfaces for ``max_depth`` segments, give no hit.
+
+    Returns
+    -------
+    (mi.SurfaceInteraction3f, mi.BSDFPtr, mi.UInt32)
+        The hits, their BSDFs and the index of the sample each came from (ascending).
+    """
+    cam = scene.sensors()[sensor]
+    size = cam.film().crop_size()
+    count = int(size[0]) * int(size[1]) * int(spp)
+    sampler = cam.sampler().clone()
+    sampler.set_sample_count(spp)
+    sampler.seed(seed, count)
+    idx = dr.arange(mi.UInt32, count)
+    pixel = idx // spp
+    pos = mi.Vector2f(mi.Float(pixel % int(size[0])), mi.Float(pixel // int(size[0])))
+    uv = (pos + sampler.next_2d()) / mi.ScalarVector2f(size)
+    ray, _ = cam.sample_ray(0.0, 0.5, uv, sampler.next_2d())
+    ctx_delta = mi.BSDFContext()
+    ctx_delta.type_mask = mi.BSDFFlags.Delta
+    active = dr.full(mi.Bool, True, count)
+    found = dr.full(mi.Bool, False, count)
+    hits = dr.zeros(mi.SurfaceInteraction3f, count)
+    for _ in range(max_depth):
+        si = scene.ray_intersect(ray, active)
+        active &= si.is_valid()
+        bsdf = si.bsdf(ray)
+        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        hits = dr.select(smooth, si, hits)
+        found |= smooth
+        active &= ~smooth & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
+        bs, weight = bsdf.sample(ctx_delta, si, sampler.next_1d(active), sampler.next_2d(active),
+                                 active)
+        active &= dr.any(weight != 0)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        dr.eval(ray, active, hits, found)
+        if not dr.any(active):
+            break
+    keep = dr.compress(found)
+    hits = dr.gather(mi.SurfaceInteraction3f, hits, keep)
+    return hits, hits.bsdf(), keep

@@ -268,7 +268,8 @@ def _walk_start(dev, width, first, stop, active):
     and internal-node count, and the two traversal counters.
     """
     active = dr.full(mi.Bool, first < stop, width) & mi.Bool(active)
-    m = dr.full(mi.UInt32, first, width)
+    # Opaque: the map range must not be baked into the kernel (one compile for every map).
+    m = dr.zeros(mi.UInt32, width) + dr.opaque(mi.UInt32, first)
     zero = dr.zeros(mi.UInt32, width)
     return (active, m, mi.UInt32(zero), dr.full(mi.UInt32, _DESCEND, width), mi.UInt32(zero),
             mi.UInt32(zero),
@@ -283,14 +284,14 @@ def _walk(forest, p, r, contribution, result_type, active, first, stop, with_sta
     """The stackless traversal behind :func:`radius_query`, one lane per query point."""
     dev = forest.device()
     width = dr.width(p)
-    r = mi.Float(r)
+    r = dr.opaque(mi.Float, r) if isinstance(r, (int, float)) else mi.Float(r)
     r2 = r * r
     total = dr.zeros(result_type, width)
 
     (active, m, node, mode, i, end, node_base, leaf_base, n_int, nodes_visited,
      photons_tested) = _walk_start(dev, width, first, stop, active)
     photons_found = dr.zeros(mi.UInt32, width)
-    stop_u = mi.UInt32(stop)
+    stop_u = dr.opaque(mi.UInt32, stop)
 
     while dr.hint(active, label="partpm_radius_query"):
         if mode == _DESCEND:
@@ -443,7 +444,7 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
 
     (active, m, node, mode, i, end, node_base, leaf_base, n_int, nodes_visited,
      photons_tested) = _walk_start(dev, width, first, stop, active)
-    stop_u = mi.UInt32(stop)
+    stop_u = dr.opaque(mi.UInt32, stop)
     ku = mi.UInt32(k)
 
     while dr.hint(active, label="partpm_knn_query"):

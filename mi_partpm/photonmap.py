@@ -47,11 +47,20 @@ class PhotonMaps:
         """Photons stored over all maps."""
         return int(self.forest.points.shape[0])
 
+    @staticmethod
+    def bytes_per_photon() -> int:
+        """Bytes of one photon record: position, direction, power, normal (float32)."""
+        channels = mi.Spectrum.Size if hasattr(mi.Spectrum, "Size") else 3
+        return 4 * (9 + channels)
+
+    @property
+    def nbytes_per_photon(self) -> int:
+        return self.bytes_per_photon()
+
     @property
     def nbytes(self) -> int:
         """Bytes of photons (position, direction, power, normal, float32) plus trees."""
-        channels = mi.Spectrum.Size if hasattr(mi.Spectrum, "Size") else 3
-        return self.photon_count * 4 * (9 + channels) + self.forest.nbytes
+        return self.photon_count * self.bytes_per_photon() + self.forest.nbytes
 
 
 def _vector(a: np.ndarray):
