@@ -112,6 +112,96 @@ def _tree_depth(counts: np.ndarray, leaf_size: int) -> np.ndarray:
     return np.ceil(np.log2(leaves_needed)).astype(np.int64)
 
 
+def _partition_levels(pts, counts, starts, depth, node_base, split_value, split_axis):
+    """Split every node of every level; fill ``split_value``/``split_axis``; return the order.
+
+    Presorted build in Dr.Jit: for each axis, a permutation of the points sorted along that
+    axis within every node's run (one NumPy argsort per axis, at the start). A node's bounds
+    are then the first and last entries of its runs and its median the middle entry of the run
+    of its longest axis; each level partitions the three permutations stably into left and
+    right halves with one prefix sum and one scatter per axis. Every position computes its
+    node from its index (node k of level d covers [floor(k c / 2^d), floor((k+1) c / 2^d))),
+    so each level is a handful of whole-array kernels over all maps at once.
+    """
+    n = pts.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64)
+    n_maps = counts.shape[0]
+    map_of = np.repeat(np.arange(n_maps), counts)
+    lo_c, hi_c = pts.min(0), pts.max(0)
+    ords = []
+    for a in range(3):
+        if n_maps == 1:
+            o = np.argsort(pts[:, a])
+        else:
+            span = max(float(hi_c[a] - lo_c[a]), 1e-30) * (1 + 1e-6)
+            # One key per point: map index + coordinate scaled into [0, 1).
+            o = np.argsort(map_of + (pts[:, a] - lo_c[a]) / span)
+        ords.append(mi.UInt32(o.astype(np.uint32)))
+    coord = [mi.Float(np.ascontiguousarray(pts[:, a])) for a in range(3)]
+    U64 = mi.UInt64
+    p = dr.arange(mi.UInt32, n)
+    m = mi.UInt32(map_of.astype(np.uint32))
+    # Never 0, also in the padding lanes of a SIMD packet (an integer division by 0 traps).
+    c = dr.maximum(U64(dr.gather(mi.UInt32, mi.UInt32(counts.astype(np.uint32)), m)), 1)
+    start = dr.gather(mi.UInt32, mi.UInt32(starts.astype(np.uint32)), m)
+    mdepth = dr.gather(mi.UInt32, mi.UInt32(depth.astype(np.uint32)), m)
+    nbase = dr.gather(mi.UInt32, mi.UInt32(node_base.astype(np.uint32)), m)
+    go_right = dr.zeros(mi.UInt32, n)
+    pl = U64(p - start)
+    dr.eval(c, start, mdepth, nbase, pl)
+    levels = []
+    for d in range(int(depth.max())):
+        D = U64(dr.opaque(mi.UInt32, 1 << d))
+        dd = dr.opaque(mi.UInt32, d)
+        k = ((pl + 1) * D - 1) // c
+        lo = start + mi.UInt32((k * c) // D)
+        hi = start + mi.UInt32(((k + 1) * c) // D)
+        mid = start + mi.UInt32(((2 * k + 1) * c) // (2 * D))
+        act = mdepth > dd
+        ext = [dr.gather(mi.Float, coord[a], dr.gather(mi.UInt32, ords[a], hi - 1, act), act)
+               - dr.gather(mi.Float, coord[a], dr.gather(mi.UInt32, ords[a], lo, act), act)
+               for a in range(3)]
+        axis = dr.select((ext[0] >= ext[1]) & (ext[0] >= ext[2]), 0,
+                         dr.select(ext[1] >= ext[2], 1, 2))
+        axis = mi.UInt32(axis)
+        right_of = mi.UInt32(p >= mid)
+        for a in range(3):
+            dr.scatter(go_right, right_of, ords[a], act & (axis == a))
+        # Per node: axis and split (the median point along the axis), at each run's first slot.
+        head = act & (p == lo)
+        node = nbase + mi.UInt32(D) - 1 + mi.UInt32(k)
+        med = dr.select(axis == 0, dr.gather(mi.UInt32, ords[0], mid, head),
+                        dr.select(axis == 1, dr.gather(mi.UInt32, ords[1], mid, head),
+                                  dr.gather(mi.UInt32, ords[2], mid, head)))
+        split = dr.select(axis == 0, dr.gather(mi.Float, coord[0], med, head),
+                          dr.select(axis == 1, dr.gather(mi.Float, coord[1], med, head),
+                                    dr.gather(mi.Float, coord[2], med, head)))
+        node_h = dr.compress(head)
+        levels.append((dr.gather(mi.UInt32, node, node_h), dr.gather(mi.UInt32, axis, node_h),
+                       dr.gather(mi.Float, split, node_h)))
+        dr.eval(go_right, lo, mid, act, levels[-1])
+        new = []
+        for a in range(3):
+            o = ords[a]
+            right = dr.gather(mi.UInt32, go_right, o)
+            ex = dr.prefix_sum(right)
+            dr.eval(ex)
+            rank_r = ex - dr.gather(mi.UInt32, ex, lo)
+            rank_l = (p - lo) - rank_r
+            newpos = dr.select(act, dr.select(right == 1, mid + rank_r, lo + rank_l), p)
+            out = dr.empty(mi.UInt32, n)
+            dr.scatter(out, o, newpos)
+            new.append(out)
+        dr.eval(new)
+        ords = new
+    for node, axis, split in levels:
+        nd = node.numpy()
+        split_axis[nd] = axis.numpy()
+        split_value[nd] = split.numpy()
+    return ords[0].numpy().astype(np.int64)
+
+
 def build_forest(points, map_ids=None, map_count: int | None = None,
                  leaf_size: int = LEAF_SIZE) -> Forest:
     """Build one balanced kd-tree per photon map.
@@ -134,11 +224,12 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
 
     Notes
     -----
-    Each level is one vectorised pass over every photon still in an unfinished tree: it takes
-    the bounding box of each node's photons, picks the longest axis, sorts each node's run
-    along it (one ``lexsort`` keyed by node), and records the median coordinate as the split.
-    Node ``k`` of level ``d`` in a map of ``c`` photons covers the run
-    ``[floor(k c / 2**d), floor((k+1) c / 2**d))``, so its two halves differ by at most one.
+    The points are sorted once per axis; each level is then a few vectorised O(N) passes over
+    every photon still in an unfinished tree (:func:`_partition_levels`): the bounding box of
+    each node from its sorted runs, the longest axis, the median along it as the split, and a
+    stable partition into the two halves. Node ``k`` of level ``d`` in a map of ``c`` photons
+    covers the run ``[floor(k c / 2**d), floor((k+1) c / 2**d))``, so its two halves differ
+    by at most one.
     """
     pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
     n_points = pts.shape[0]
@@ -171,30 +262,9 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     split_value = np.zeros(int(internal.sum()), dtype=np.float32)
     split_axis = np.zeros(int(internal.sum()), dtype=np.uint32)
 
-    for d in range(int(depth.max()) if map_count else 0):
-        maps = np.nonzero(depth > d)[0]
-        nodes_per_map = 1 << d
-        m = np.repeat(maps, nodes_per_map)
-        k = np.tile(np.arange(nodes_per_map, dtype=np.int64), maps.shape[0])
-        c = counts[m]
-        lo = starts[m] + (k * c) // nodes_per_map
-        hi = starts[m] + ((k + 1) * c) // nodes_per_map
-        lens = hi - lo
-        seg_offsets = np.concatenate(([0], np.cumsum(lens)))
-        seg_of = np.repeat(np.arange(lens.shape[0]), lens)
-        idx = np.repeat(lo, lens) + (np.arange(seg_offsets[-1]) - seg_offsets[seg_of])
-        sub = pts[idx]
-        extent = (np.maximum.reduceat(sub, seg_offsets[:-1], axis=0)
-                  - np.minimum.reduceat(sub, seg_offsets[:-1], axis=0))
-        axis = np.argmax(extent, axis=1)
-        key = sub[np.arange(sub.shape[0]), axis[seg_of]]
-        perm = np.lexsort((key, seg_of))
-        pts[idx] = sub[perm]
-        order[idx] = order[idx[perm]]
-        mid = starts[m] + ((2 * k + 1) * c) // (2 * nodes_per_map)
-        node = node_base[m] + (nodes_per_map - 1) + k
-        split_value[node] = pts[mid, axis]
-        split_axis[node] = axis
+    perm = _partition_levels(pts, counts, starts, depth, node_base, split_value, split_axis)
+    pts = pts[perm]
+    order = order[perm]
 
     # Leaf table: leaf j of map m starts at floor(j c / L); one closing entry per map.
     m = np.repeat(np.arange(map_count), leaves + 1)
