@@ -136,6 +136,18 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--out", required=True, help="output directory (CSV, JSON, plot, workloads)")
     e.add_argument("-q", "--quiet", action="store_true", help="print only errors")
 
+    b = sub.add_parser("bench", help="kd-tree and tracer benchmarks against scipy, pykdtree "
+                                     "and Mitsuba's path tracer")
+    b.add_argument("--scene", default="cornell_box", help="scene (default cornell_box)")
+    b.add_argument("--photons", type=_positive_int("--photons"), default=100_000)
+    b.add_argument("--resolution", type=parse_resolution, default=(480, 480))
+    b.add_argument("--repeats", type=_positive_int("--repeats"), default=5)
+    b.add_argument("--smoke", action="store_true",
+                   help="tiny sizes: checks that every benchmark runs, measures nothing")
+    b.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
+    b.add_argument("--out", help="write the table as JSON to this file")
+    b.add_argument("-q", "--quiet", action="store_true", help="print only the table")
+
     m = sub.add_parser("scaling", help="strong scaling of the MPI backend over P ranks")
     m.add_argument("scene", help="built-in scene name or Mitsuba XML file")
     m.add_argument("--ranks", default="1,2", help="comma-separated rank counts P (default 1,2)")
@@ -335,6 +347,22 @@ def _int_list(option, text):
     return values
 
 
+def _bench(args) -> int:
+    args.list, args.scene, args.command = False, args.scene, "bench"
+    _setup(args)
+    from .bench import format_bench, run_bench
+    sizes = dict(photons=args.photons, resolution=args.resolution, repeats=args.repeats)
+    if args.smoke:
+        sizes = dict(photons=5000, resolution=(32, 32), repeats=1, big=20_000, huge=100_000,
+                     trace_photons_count=20_000, path_spp=2)
+    result = run_bench(args.out, args.scene, progress=None if args.quiet else
+                       lambda line: print(line, flush=True), **sizes)
+    print(format_bench(result))
+    if args.out:
+        print(f"wrote    {args.out}")
+    return 0
+
+
 def _speedup(args) -> int:
     args.list, args.command = False, "speedup"
     _setup(args)
@@ -382,6 +410,8 @@ def main(argv=None) -> int:
             return _scaling(args)
         if args.command == "speedup":
             return _speedup(args)
+        if args.command == "bench":
+            return _bench(args)
     except UsageError as e:
         print(f"partpm: error: {e}", file=sys.stderr)
         return 2

@@ -46,6 +46,8 @@ class Photons:
         N, the photons emitted in total over all maps (also those of maps not traced here).
     map_count : int
         n, the number of partial maps.
+    segments : int
+        Ray segments traced to make them (one scene intersection each): the tracer's work.
     """
 
     position: np.ndarray
@@ -56,6 +58,7 @@ class Photons:
     bounce: np.ndarray
     emitted: int
     map_count: int
+    segments: int = 0
 
     def __len__(self) -> int:
         return int(self.position.shape[0])
@@ -168,6 +171,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
 
     stored = {k: [] for k in ("position", "direction", "power", "normal", "map_id", "bounce")}
+    segments = 0
     bounce = 1
     while bounce <= max_depth:
         # Drop the paths that ended; keep the state of the live ones.
@@ -181,6 +185,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
             rng = mi.PCG32(alive)
             rng.state, rng.inc = state, inc
         active = mi.Bool(True)
+        segments += alive
         if progress is not None:
             progress(f"bounce {bounce}: {alive} photon paths")
 
@@ -220,6 +225,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         bounce += 1
 
     if not stored["position"]:
+        empty.segments = segments
         return empty
     return Photons(*(np.concatenate(stored[k]) for k in stored), int(photon_count),
-                   int(map_count))
+                   int(map_count), segments)

@@ -42,3 +42,15 @@ def test_speedup_cli_and_errors(tmp_path, capsys):
     assert main(["speedup", "cornell_box", "--maps", "1,3,7", "--photons", "20",
                  "--out", str(tmp_path)]) == 2
     assert "lcm = 21" in capsys.readouterr().err
+
+
+def test_bench_smoke(tmp_path, capsys):
+    """Every benchmark runs and reports a ratio (tiny sizes: the figures mean nothing)."""
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--smoke", "--out", str(out), "-q"]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    names = [r["benchmark"] for r in rows]
+    assert names[0] == "radius sums, n=1" and "32 maps in turn / 1 map" in names
+    assert any(n.startswith("tracing") for n in names)
+    assert all(r["ratio"] > 0 and r["ours"] > 0 for r in rows)
+    assert "baseline time / ours" in capsys.readouterr().out
