@@ -93,8 +93,7 @@ def run_bench(out_json=None, scene_name: str = "cornell_box", photons: int = 100
         f"points, r = {radius:.4g}")
 
     def power_sum(forest_maps):
-        power = forest_maps.power
-        return lambda i, a: dr.gather(mi.Spectrum, power, i, a)
+        return forest_maps.photon_power
 
     rows = []
 

@@ -25,18 +25,31 @@ class PhotonMaps:
     ----------
     forest : Forest
         One balanced kd-tree per map.
-    direction, power, normal : Dr.Jit arrays
-        Photon attributes in the forest's tree order (``mi.Vector3f``, ``mi.Spectrum``,
-        ``mi.Vector3f``).
+    direction : mi.Vector3f
+        Incident direction of every photon (towards where it came from), in tree order.
+    power16 : half-precision colour array
+        Every photon's power divided by ``power_scale``, as float16 (6 bytes in RGB): in
+        [0, 1], so no photon overflows and only those below 6e-8 of the brightest underflow.
+        :meth:`photon_power` gives it back as ``mi.Spectrum``.
+    power_scale : float
+        The largest power component of any photon.
     emitted : int
         N, the photons emitted over all maps (powers are already divided by it).
+
+    A photon record on the device is 12 (position, in the forest) + 12 (direction) + 6
+    (power) bytes; the surface normal stays on the host (the estimate does not use it).
     """
 
     forest: Forest
     direction: object
-    power: object
-    normal: object
+    power16: object
+    power_scale: float
     emitted: int
+
+    def photon_power(self, index, active=True):
+        """The power of the photons at tree-order ``index`` as ``mi.Spectrum``."""
+        value = dr.gather(type(self.power16), self.power16, index, active)
+        return mi.Spectrum(value) * dr.opaque(mi.Float, self.power_scale)
 
     @property
     def map_count(self) -> int:
@@ -49,9 +62,9 @@ class PhotonMaps:
 
     @staticmethod
     def bytes_per_photon() -> int:
-        """Bytes of one photon record: position, direction, power, normal (float32)."""
+        """Bytes of one photon record: position and direction (float32), power (float16)."""
         channels = mi.Spectrum.Size if hasattr(mi.Spectrum, "Size") else 3
-        return 4 * (9 + channels)
+        return 4 * 6 + 2 * channels
 
     @property
     def nbytes_per_photon(self) -> int:
@@ -59,7 +72,7 @@ class PhotonMaps:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of photons (position, direction, power, normal, float32) plus trees."""
+        """Bytes of the photon records plus the trees."""
         return self.photon_count * self.bytes_per_photon() + self.forest.nbytes
 
 
@@ -72,14 +85,15 @@ def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE) -> PhotonMap
     forest = build_forest(photons.position, photons.map_id.astype(np.int64),
                           photons.map_count, leaf_size)
     order = forest.order
-    power = photons.power[order]
-    if power.shape[1] == 3:
-        spectrum = mi.Spectrum(power[:, 0], power[:, 1], power[:, 2])
+    power = photons.power[order].astype(np.float64)
+    scale = float(power.max()) if power.size and power.max() > 0 else 1.0
+    half = (power / scale).astype(np.float16)
+    if half.shape[1] == 3:
+        power16 = mi.Array3f16(half[:, 0], half[:, 1], half[:, 2])
     else:
-        spectrum = mi.Spectrum(power[:, 0])
+        power16 = mi.Array1f16(half[:, 0])
     return PhotonMaps(forest=forest, direction=_vector(photons.direction[order]),
-                      power=spectrum, normal=_vector(photons.normal[order]),
-                      emitted=photons.emitted)
+                      power16=power16, power_scale=scale, emitted=photons.emitted)
 
 
 def fixed_radius(scene: mi.Scene, radius, radius_fraction: float) -> float:
