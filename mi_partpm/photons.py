@@ -195,33 +195,39 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         store = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (bounce >= min_bounce)
         normal = si.sh_frame.n
         normal = dr.select(dr.dot(normal, -ray.d) < 0, -normal, normal)
+        hit_p, hit_wi, hit_power = si.p, -ray.d, power
+
+        last = bounce == max_depth
+        if not last:
+            sample1 = rng.next_float32()
+            sample2 = mi.Point2f(rng.next_float32(), rng.next_float32())
+            bs, bsdf_weight = bsdf.sample(ctx, si, sample1, sample2, active)
+            ray = si.spawn_ray(si.to_world(bs.wo))
+            power = power * bsdf_weight
+            active &= dr.any(power != 0) & dr.all(dr.isfinite(power))
+            if bounce >= rr_depth:
+                # Russian roulette on the path's throughput (power relative to its emission).
+                q = dr.minimum(dr.max(bsdf_weight), 0.95)
+                survive = rng.next_float32() < q
+                active &= survive
+                power = dr.select(survive, power / q, power)
+        # One kernel per bounce: the intersection, what to store and the next segment together
+        # (evaluating them apart would trace the rays once per output).
+        dr.eval(hit_p, hit_wi, hit_power, normal, store, ray, power, active, rng.state, map_id)
 
         s = dr.compress(store)
         if dr.width(s) > 0:
-            pos, wi, pw, nrm = _gather_all(s, si.p, -ray.d, power, normal)
+            pos, wi, pw, nrm = _gather_all(s, hit_p, hit_wi, hit_power, normal)
             mid = dr.gather(mi.UInt32, map_id, s)
+            dr.eval(pos, wi, pw, nrm, mid)
             stored["position"].append(pos.numpy().T)
             stored["direction"].append(wi.numpy().T)
             stored["power"].append(np.atleast_2d(pw.numpy()).reshape(channels, -1).T)
             stored["normal"].append(nrm.numpy().T)
             stored["map_id"].append(mid.numpy())
             stored["bounce"].append(np.full(dr.width(s), min(bounce, 65535), np.uint16))
-
-        if bounce == max_depth:
+        if last:
             break
-        sample1 = rng.next_float32()
-        sample2 = mi.Point2f(rng.next_float32(), rng.next_float32())
-        bs, bsdf_weight = bsdf.sample(ctx, si, sample1, sample2, active)
-        ray = si.spawn_ray(si.to_world(bs.wo))
-        power = power * bsdf_weight
-        active &= dr.any(power != 0) & dr.all(dr.isfinite(power))
-        if bounce >= rr_depth:
-            # Russian roulette on the path's throughput (power relative to its emission).
-            q = dr.minimum(dr.max(bsdf_weight), 0.95)
-            survive = rng.next_float32() < q
-            active &= survive
-            power = dr.select(survive, power / q, power)
-        dr.eval(ray, power, active, rng.state, map_id)
         bounce += 1
 
     if not stored["position"]:
