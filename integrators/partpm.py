@@ -134,7 +134,7 @@ class PartPMIntegrator(mi.SamplingIntegrator):
             photons = photons.with_maps(np.searchsorted(owned, photons.map_id), len(owned))
         t1 = time.perf_counter()
         self.maps = build_photon_maps(photons)
-        dr.eval(self.maps.direction, self.maps.power16)
+        dr.eval(self.maps.direction32, self.maps.power)
         t2 = time.perf_counter()
         if len(photons) == 0:
             log.warning("no photon was stored: the scene has no surface with a non-delta "

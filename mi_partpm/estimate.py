@@ -45,7 +45,7 @@ class _Estimator:
     def contribution(self, i, found):
         """f_r * power of photon ``i`` (power alone for plain diffuse), 0 from the far side."""
         maps, si = self.maps, self.si
-        wi_photon = dr.gather(mi.Vector3f, maps.direction, i, found)
+        wi_photon = maps.photon_direction(i, found)
         power = maps.photon_power(i, found)
         same_side = dr.dot(wi_photon, self.n_view) > 0
         wo = si.to_local(wi_photon)

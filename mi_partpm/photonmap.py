@@ -25,31 +25,31 @@ class PhotonMaps:
     ----------
     forest : Forest
         One balanced kd-tree per map.
-    direction : mi.Vector3f
-        Incident direction of every photon (towards where it came from), in tree order.
-    power16 : half-precision colour array
-        Every photon's power divided by ``power_scale``, as float16 (6 bytes in RGB): in
-        [0, 1], so no photon overflows and only those below 6e-8 of the brightest underflow.
-        :meth:`photon_power` gives it back as ``mi.Spectrum``.
-    power_scale : float
-        The largest power component of any photon.
+    direction32 : mi.UInt32
+        Incident direction of every photon (towards where it came from), in tree order,
+        octahedral-encoded in 2 x 16 bits (angular error below 0.04 degrees);
+        :meth:`photon_direction` decodes it.
+    power : mi.Spectrum
+        Every photon's power (float32), in tree order.
     emitted : int
         N, the photons emitted over all maps (powers are already divided by it).
 
-    A photon record on the device is 12 (position, in the forest) + 12 (direction) + 6
-    (power) bytes; the surface normal stays on the host (the estimate does not use it).
+    A photon record on the device is 12 (position, in the forest) + 4 (direction) + 12
+    (power, RGB) bytes; the surface normal stays on the host (the estimate does not use it).
     """
 
     forest: Forest
-    direction: object
-    power16: object
-    power_scale: float
+    direction32: object
+    power: object
     emitted: int
 
     def photon_power(self, index, active=True):
         """The power of the photons at tree-order ``index`` as ``mi.Spectrum``."""
-        value = dr.gather(type(self.power16), self.power16, index, active)
-        return mi.Spectrum(value) * dr.opaque(mi.Float, self.power_scale)
+        return dr.gather(mi.Spectrum, self.power, index, active)
+
+    def photon_direction(self, index, active=True):
+        """The incident direction of the photons at tree-order ``index`` (unit vectors)."""
+        return decode_direction(dr.gather(mi.UInt32, self.direction32, index, active))
 
     @property
     def map_count(self) -> int:
@@ -62,9 +62,9 @@ class PhotonMaps:
 
     @staticmethod
     def bytes_per_photon() -> int:
-        """Bytes of one photon record: position and direction (float32), power (float16)."""
+        """Bytes of one photon record: position and power (float32), direction (2 x 16 bit)."""
         channels = mi.Spectrum.Size if hasattr(mi.Spectrum, "Size") else 3
-        return 4 * 6 + 2 * channels
+        return 12 + 4 + 4 * channels
 
     @property
     def nbytes_per_photon(self) -> int:
@@ -76,8 +76,28 @@ class PhotonMaps:
         return self.photon_count * self.bytes_per_photon() + self.forest.nbytes
 
 
-def _vector(a: np.ndarray):
-    return mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+def encode_direction(d: np.ndarray) -> np.ndarray:
+    """Unit vectors (K, 3) -> uint32 octahedral codes (16 bits per coordinate)."""
+    d = np.asarray(d, np.float64)
+    d = d / np.maximum(np.abs(d).sum(axis=1, keepdims=True), 1e-30)
+    u, v, z = d[:, 0], d[:, 1], d[:, 2]
+    su, sv = np.where(u >= 0, 1.0, -1.0), np.where(v >= 0, 1.0, -1.0)
+    lower = z < 0
+    u, v = np.where(lower, (1 - np.abs(v)) * su, u), np.where(lower, (1 - np.abs(u)) * sv, v)
+    qu = np.rint((np.clip(u, -1, 1) * 0.5 + 0.5) * 65535).astype(np.uint32)
+    qv = np.rint((np.clip(v, -1, 1) * 0.5 + 0.5) * 65535).astype(np.uint32)
+    return qu | (qv << 16)
+
+
+def decode_direction(code):
+    """uint32 octahedral codes (Dr.Jit) -> unit ``mi.Vector3f`` (inverse of encode)."""
+    u = mi.Float(code & 0xFFFF) * (2.0 / 65535.0) - 1.0
+    v = mi.Float(code >> 16) * (2.0 / 65535.0) - 1.0
+    z = 1.0 - dr.abs(u) - dr.abs(v)
+    t = dr.maximum(-z, 0.0)
+    x = u + dr.select(u >= 0, -t, t)
+    y = v + dr.select(v >= 0, -t, t)
+    return dr.normalize(mi.Vector3f(x, y, z))
 
 
 def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE) -> PhotonMaps:
@@ -85,15 +105,14 @@ def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE) -> PhotonMap
     forest = build_forest(photons.position, photons.map_id.astype(np.int64),
                           photons.map_count, leaf_size)
     order = forest.order
-    power = photons.power[order].astype(np.float64)
-    scale = float(power.max()) if power.size and power.max() > 0 else 1.0
-    half = (power / scale).astype(np.float16)
-    if half.shape[1] == 3:
-        power16 = mi.Array3f16(half[:, 0], half[:, 1], half[:, 2])
+    power = photons.power[order]
+    if power.shape[1] == 3:
+        spectrum = mi.Spectrum(power[:, 0], power[:, 1], power[:, 2])
     else:
-        power16 = mi.Array1f16(half[:, 0])
-    return PhotonMaps(forest=forest, direction=_vector(photons.direction[order]),
-                      power16=power16, power_scale=scale, emitted=photons.emitted)
+        spectrum = mi.Spectrum(power[:, 0])
+    return PhotonMaps(forest=forest,
+                      direction32=mi.UInt32(encode_direction(photons.direction[order])),
+                      power=spectrum, emitted=photons.emitted)
 
 
 def fixed_radius(scene: mi.Scene, radius, radius_fraction: float) -> float:

@@ -90,7 +90,7 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
     rows, reference = [], None
     for n in maps_list:
         maps = build_photon_maps(traced.with_maps(traced.map_id % n, n))
-        dr.eval(maps.direction, maps.power16)
+        dr.eval(maps.direction32, maps.power)
         # Warm up: compile the kernels (one for every map, the range is opaque).
         _timed(lambda: radiance_estimate(maps, si, bsdf, radius, active, map_range=(0, 1)))
         times = np.zeros((n, repeats))
