@@ -32,7 +32,7 @@ from .photonmap import PhotonMaps, build_photon_maps, fixed_radius
 from .photons import trace_photons
 from .scenes import load_scene
 
-__all__ = ["run_speedup", "map_bytes", "format_speedup", "WORKLOAD_VERSION"]
+__all__ = ["run_speedup", "map_bytes", "format_speedup", "plot_speedup", "WORKLOAD_VERSION"]
 
 log = logging.getLogger("mi_partpm")
 
@@ -165,6 +165,14 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
     return result
 
 
+def plot_speedup(speedup_json, path=None):
+    """Redraw ``speedup.png`` from a saved ``speedup.json``."""
+    result = json.loads(Path(speedup_json).read_text())
+    path = Path(speedup_json).with_suffix(".png") if path is None else path
+    _plot(result["rows"], path, result["scene"])
+    return path
+
+
 def _plot(rows, path, title):
     import matplotlib
     matplotlib.use("Agg")
@@ -173,7 +181,10 @@ def _plot(rows, path, title):
     fig, ax = plt.subplots(figsize=(5, 4))
     ax.plot(n, [r["ideal"] for r in rows], "k--", label="ideal (n)")
     ax.plot(n, [r["speedup"] for r in rows], "o-", label="measured: time of one map")
-    ax.plot(n, [r["node_ratio"] for r in rows], "s:", label="nodes visited per query, 1 map / n")
+    ax.plot(n, [r["tested_ratio"] for r in rows], "^:",
+            label="photons tested per query: n = 1 over n")
+    ax.plot(n, [r["node_ratio"] for r in rows], "s:",
+            label="nodes visited per query: n = 1 over n")
     ax.set_xscale("log", base=2)
     ax.set_yscale("log", base=2)
     ax.set_xticks(n)
