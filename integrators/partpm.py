@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_partpm import mpi
+from mi_partpm import memory, mpi
 from mi_partpm.estimate import radiance_estimate
 from mi_partpm.eyepath import eye_path_radiance
 from mi_partpm.photonmap import build_photon_maps, fixed_radius
@@ -122,13 +122,28 @@ class PartPMIntegrator(mi.SamplingIntegrator):
         p = self.params
         self.radius = self.search_radius(scene)
         owned = self.owned_maps()
+        traced_here = int(map_sizes(p.photon_count, self.map_count)[owned].sum())
+        film = scene.sensors()[0].film().crop_size()
+        spp = scene.sensors()[0].sampler().sample_count()
+
+        def estimate(ratio=None):
+            return memory.estimate_render(traced_here, p.photon_depth, int(film[0]),
+                                          int(film[1]), int(spp), ratio)
+        # Before any photon is traced: the estimate from the props and the film.
+        memory.check_fits(estimate(), f"photon_count = {p.photon_count}")
+
+        def check_during(ratio, done):
+            memory.check_fits(estimate(ratio), f"photon_count = {p.photon_count} (projected "
+                                               f"from the first {done:,} photons traced)")
+
         log.info("trace: emitting %d photons into %d maps ...", p.photon_count, self.map_count)
         t0 = time.perf_counter()
         photons = trace_photons(scene, p.photon_count, self.map_count, p.seed,
                                 p.photon_depth, p.rr_depth,
                                 maps=None if self.comm is None else owned,
                                 min_bounce=2 if p.direct == "nee" else 1,
-                                progress=lambda line: log.debug("trace: %s", line))
+                                progress=lambda line: log.debug("trace: %s", line),
+                                memory_check=check_during)
         if self.comm is not None:
             # This rank's maps become its local maps 0 .. len(owned)-1.
             photons = photons.with_maps(np.searchsorted(owned, photons.map_id), len(owned))
@@ -141,7 +156,7 @@ class PartPMIntegrator(mi.SamplingIntegrator):
                         "BSDF lit by its emitters; only emitted light will show")
         self.stats = {
             "photons_emitted": p.photon_count, "photons_stored": len(photons),
-            "photons_traced": int(map_sizes(p.photon_count, self.map_count)[owned].sum()),
+            "photons_traced": traced_here,
             "map_count": self.map_count, "maps_owned": owned.tolist(), "radius": self.radius,
             "map_bytes": self.maps.nbytes, "time_trace": t1 - t0, "time_build": t2 - t1,
         }
@@ -188,7 +203,9 @@ class PartPMIntegrator(mi.SamplingIntegrator):
         dr.eval(image)  # also when asked not to: the estimate phase is timed here
         dr.sync_thread()
         self.stats["time_estimate"] = time.perf_counter() - t0
-        log.info("estimate: %.2f s", self.stats["time_estimate"])
+        self.stats["peak_memory_bytes"] = memory.peak_rss_bytes()
+        log.info("estimate: %.2f s (peak memory of the process %.2f GB)",
+                 self.stats["time_estimate"], self.stats["peak_memory_bytes"] / 1e9)
         self.after_estimate()
         return image
 

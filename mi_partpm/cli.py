@@ -243,11 +243,16 @@ def _render(args) -> int:
         raise UsageError(str(e)) from None
     if not scene.emitters():
         raise UsageError(f"scene {args.scene!r} has no emitter: nothing would be lit")
+    if not scene.sensors():
+        raise UsageError(f"scene {args.scene!r} has no sensor: add a camera to render it")
     film = scene.sensors()[0].film()
     log = logging.getLogger("mi_partpm")
     log.info("scene %s: %dx%d, %s", args.scene, film.size()[0], film.size()[1], integrator)
     t1 = time.perf_counter()
-    image = mi.render(scene, integrator=integrator, seed=args.seed)
+    try:
+        image = mi.render(scene, integrator=integrator, seed=args.seed)
+    except (ValueError, RuntimeError, MemoryError) as e:
+        raise UsageError(_last_line(e)) from None
     dr.eval(image)
     dr.sync_thread()
     t2 = time.perf_counter()
@@ -272,6 +277,8 @@ def _render(args) -> int:
             if f"time_{phase}" in stats:
                 print(f"{phase:8} {stats[f'time_{phase}']:8.2f} s")
         print(f"render   {t2 - t1:8.2f} s (all phases)")
+        if "peak_memory_bytes" in stats:
+            print(f"memory   {stats['peak_memory_bytes'] / 1e9:8.2f} GB peak (this process)")
         if stats:
             if "k" in stats:
                 search = (f"k = {stats['k']}, mean kNN radius "
@@ -302,7 +309,10 @@ def format_ranks(ranks) -> str:
 
 
 def _last_line(e: Exception) -> str:
-    """The message of an error raised inside a plugin (Mitsuba wraps it in a traceback)."""
+    """The message of an error raised inside a plugin (Mitsuba wraps it in a traceback, and
+    mi.render in a RuntimeError whose cause is the original error)."""
+    while e.__cause__ is not None:
+        e = e.__cause__
     line = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
     for prefix in ("ValueError: ", "RuntimeError: ", "FileNotFoundError: "):
         if line.startswith(prefix):

@@ -18,6 +18,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .memory import TRACE_BATCH
+
 __all__ = ["Photons", "map_sizes", "map_seeds", "trace_photons", "UNLIMITED_DEPTH"]
 
 #: Internal stand-in for ``max_depth = -1`` (no limit; Russian roulette ends the paths).
@@ -105,10 +107,46 @@ def _gather_all(idx, *values):
     return [dr.gather(type(v), v, idx) for v in values]
 
 
+def _emitter_name(emitter) -> str:
+    """How to name an emitter in a message: its shape's id, its own id, or its type."""
+    shape = emitter.get_shape() if hasattr(emitter, "get_shape") else None
+    if shape is not None:
+        return f"on shape {shape.id()!r}" if shape.id() else "on an unnamed shape"
+    if emitter.id():
+        return repr(emitter.id())
+    return str(emitter).split("[")[0].strip()
+
+
+def check_emitters(scene: mi.Scene, samples: int = 1024):
+    """Refuse emitters whose power is NaN, infinite or negative, before any photon is traced.
+
+    Each emitter emits ``samples`` test rays (stratified samples); Mitsuba accepts such
+    values in a scene file, and the tracer would otherwise drop those photons silently.
+    """
+    if not scene.emitters():
+        raise ValueError("the scene has no emitter: photon mapping needs at least one light")
+    u = (np.arange(samples, dtype=np.float64) + 0.5) / samples
+    rng = np.random.default_rng(0)
+    s = [mi.Float(np.asarray(a, np.float32)) for a in (u, *rng.random((4, samples)))]
+    for emitter in scene.emitters():
+        _, weight = emitter.sample_ray(0.0, s[0], mi.Point2f(s[1], s[2]),
+                                       mi.Point2f(s[3], s[4]), True)
+        w = np.atleast_2d(np.array(mi.Spectrum(weight)))
+        name = _emitter_name(emitter)
+        if not np.all(np.isfinite(w)):
+            raise ValueError(f"emitter {name} emits non-finite power (NaN or inf): its "
+                             f"radiance / intensity must be finite and >= 0")
+        if np.any(w < 0):
+            raise ValueError(f"emitter {name} emits negative power (down to {w.min():.4g}): "
+                             f"its radiance / intensity must be finite and >= 0")
+
+
 def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: int = 0,
                   max_depth: int = -1, rr_depth: int = 5, maps: Optional[Sequence[int]] = None,
                   min_bounce: int = 1,
-                  progress: Optional[Callable[[str], None]] = None) -> Photons:
+                  progress: Optional[Callable[[str], None]] = None,
+                  batch_size: int = TRACE_BATCH,
+                  memory_check: Optional[Callable[[float, int], None]] = None) -> Photons:
     """Trace ``photon_count`` photons split over ``map_count`` maps.
 
     Parameters
@@ -132,14 +170,18 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         Store photons from this many segments on (2 leaves out direct illumination).
     progress : callable(str), optional
         Receives a line per bounce.
+    batch_size : int
+        Photon paths traced together at most; more run in batches (same photons).
+    memory_check : callable(stored_per_emitted, traced), optional
+        Called after each batch but the last with the measured photons stored per photon
+        emitted; it may raise to stop before memory runs out.
 
     Returns
     -------
     Photons
         Stored photons, ``emitted == photon_count`` whichever maps were traced.
     """
-    if not scene.emitters():
-        raise ValueError("the scene has no emitter: photon mapping needs at least one light")
+    check_emitters(scene)
     sizes = map_sizes(photon_count, map_count)
     maps = np.arange(map_count) if maps is None else np.asarray(list(maps), dtype=np.int64)
     max_depth = UNLIMITED_DEPTH if max_depth == -1 else int(max_depth)
@@ -157,6 +199,34 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     if n_lanes == 0:
         return empty
 
+    stored = {k: [] for k in ("position", "direction", "power", "normal", "map_id", "bounce")}
+    segments = 0
+    for first in range(0, n_lanes, batch_size):
+        # Batches only bound the memory: every lane's random stream depends on its (map,
+        # index in the map) alone, so the photons are the same for any batch size.
+        chunk = slice(first, min(first + batch_size, n_lanes))
+        segments += _trace_batch(scene, lane_map[chunk], lane_index[chunk], photon_count,
+                                 map_count, seed, max_depth, rr_depth, min_bounce, channels,
+                                 stored, progress)
+        done = chunk.stop
+        if memory_check is not None and done < n_lanes:
+            ratio = sum(len(m) for m in stored["map_id"]) / done
+            memory_check(ratio, done)
+        if progress is not None and n_lanes > batch_size:
+            progress(f"batch: {done} of {n_lanes} photons traced")
+
+    if not stored["position"]:
+        empty.segments = segments
+        return empty
+    return Photons(*(np.concatenate(stored[k]) for k in stored), int(photon_count),
+                   int(map_count), segments)
+
+
+def _trace_batch(scene, lane_map, lane_index, photon_count, map_count, seed, max_depth,
+                 rr_depth, min_bounce, channels, stored, progress) -> int:
+    """Trace one batch of photon paths (a wavefront, one kernel per bounce); append the
+    stored photons to ``stored`` and return the ray segments traced."""
+    n_lanes = int(lane_map.shape[0])
     map_id = mi.UInt32(lane_map)
     rng = mi.PCG32(n_lanes)
     rng.seed(dr.gather(mi.UInt64, mi.UInt64(map_seeds(seed, map_count)), map_id),
@@ -170,7 +240,6 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     active = dr.any(power != 0) & dr.all(dr.isfinite(power))
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
 
-    stored = {k: [] for k in ("position", "direction", "power", "normal", "map_id", "bounce")}
     segments = 0
     bounce = 1
     while bounce <= max_depth:
@@ -229,9 +298,5 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         if last:
             break
         bounce += 1
+    return segments
 
-    if not stored["position"]:
-        empty.segments = segments
-        return empty
-    return Photons(*(np.concatenate(stored[k]) for k in stored), int(photon_count),
-                   int(map_count), segments)

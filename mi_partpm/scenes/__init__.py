@@ -92,6 +92,15 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
         params["resx"], params["resy"] = int(resolution[0]), int(resolution[1])
     if spp is not None:
         params["spp"] = int(spp)
+    text = path.read_text(errors="replace")
+    for name in params:
+        if f"${name}" not in text:
+            option = {"resx": "the resolution (--resolution)", "resy": "the resolution "
+                      "(--resolution)", "spp": "the sample count (--spp)"}.get(name, name)
+            raise ValueError(
+                f"scene file {str(path)!r} does not take ${name}, so {option} cannot be set: "
+                f"use value=\"${name}\" in it (with <default name=\"{name}\" .../>) or leave "
+                f"the option out")
     try:
         return mi.load_file(str(path), **{k: str(v) for k, v in params.items()})
     except RuntimeError as e:

@@ -1,0 +1,218 @@
+"""Bad input fails fast and clearly; big input is guarded; output is finite and reproducible."""
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+import drjit as dr
+import mitsuba as mi
+
+import mi_partpm
+from conftest import render
+from mi_partpm.cli import main
+from mi_partpm.kdtree import build_forest, knn_neighbours, radius_query
+from mi_partpm.memory import MemoryGuardError
+from mi_partpm.photons import trace_photons
+from test_render import small_scene
+
+
+# ---------------------------------------------------------------- bad input, clear errors
+
+def _lamp(value, kind="area"):
+    if kind == "area":
+        return {"lamp": {"type": "rectangle", "emitter": {
+            "type": "area", "radiance": {"type": "rgb", "value": value}}}}
+    return {"lamp": {"type": "point", "position": [0, 0, 1],
+                     "intensity": {"type": "rgb", "value": value}},
+            "wall": {"type": "rectangle", "bsdf": {"type": "diffuse"}}}
+
+
+@pytest.mark.parametrize("kind", ["area", "point"])
+@pytest.mark.parametrize("value, message", [
+    ([float("nan"), 1, 1], "emits non-finite power"),
+    ([math.inf, 1, 1], "emits non-finite power"),
+    ([-1, 1, 1], "emits negative power"),
+])
+def test_emitter_with_nan_or_negative_radiance_is_refused(kind, value, message):
+    scene = small_scene([0, 0, 3], [0, 0, 0], **_lamp(value, kind))
+    with pytest.raises(Exception) as e:
+        render(scene, mi.load_dict({"type": "partpm", "photon_count": 1000}))
+    # mi.render wraps a plugin's error in a RuntimeError; the cause is ours.
+    assert __import__("re").search(message + r".*must be finite and >= 0", str(_root(e.value)))
+
+
+def _root(e):
+    while e.__cause__ is not None:
+        e = e.__cause__
+    return e
+
+
+@pytest.mark.parametrize("xml, message", [
+    ('<scene version="3.0.0"><shape type="sphere"\n</scene>', r"could not load scene .*"
+                                                              r"Parsing of XML file"),
+    ('<scene version="3.0.0"><shape type="ply"><string name="filename" '
+     'value="nowhere/mesh.ply"/></shape></scene>', r'mesh.ply.*file not found'),
+    ('<scene version="3.0.0"><sensor type="perspective"/><shape type="rectangle" id="lamp">'
+     '<emitter type="area"><rgb name="radiance" value="-1, 1, 1"/></emitter></shape></scene>',
+     r"emitter on shape 'lamp' emits negative power"),
+    ('<scene version="3.0.0"><shape type="rectangle"><emitter type="area"/></shape></scene>',
+     r"has no sensor"),
+])
+def test_cli_bad_scene_files(tmp_path, capsys, xml, message):
+    path = tmp_path / "scene.xml"
+    path.write_text(xml)
+    assert main(["render", str(path), "--photons", "1000", "-o", str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("partpm: error:")
+    assert __import__("re").search(message, err[-1]), err[-1]
+
+
+def test_resolution_for_a_scene_without_resx_says_so(tmp_path, capsys):
+    path = tmp_path / "fixed.xml"
+    path.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    assert main(["render", str(path), "--resolution", "8x8", "-o", str(tmp_path / "x.exr")]) == 2
+    assert "does not take $resx, so the resolution (--resolution) cannot be set" in \
+        capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- memory
+
+def test_memory_guard_stops_an_oversize_request_before_tracing(monkeypatch, capsys, tmp_path):
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "50e6")     # pretend 50 MB are free
+    assert main(["render", "cornell_box", "--photons", "2000000", "--resolution", "16x16",
+                 "-o", str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err
+    print(err.strip().splitlines()[-1])
+    assert "photon_count = 2000000 needs about" in err
+    assert "only 0.05 GB are free: lower photon_count" in err
+    assert "trace: emitting" not in err                   # stopped before any tracing
+
+
+def test_memory_is_checked_again_while_tracing_in_batches():
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    seen = []
+
+    def check(ratio, done):
+        seen.append((ratio, done))
+        raise MemoryGuardError(f"projected from {done} photons")
+    with pytest.raises(MemoryGuardError, match="projected from 5000 photons"):
+        trace_photons(scene, 20_000, 4, 0, batch_size=5000, memory_check=check)
+    # The measured ratio of stored to emitted photons in the Cornell box is about 3.
+    assert seen == [(seen[0][0], 5000)] and 2.0 < seen[0][0] < 4.0
+
+
+def test_batches_give_the_same_photons():
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    a = trace_photons(scene, 20_000, 3, 1)
+    b = trace_photons(scene, 20_000, 3, 1, batch_size=3000)
+    ka, kb = np.lexsort(a.position.T), np.lexsort(b.position.T)
+    assert len(a) == len(b) and a.segments == b.segments
+    np.testing.assert_array_equal(a.position[ka], b.position[kb])
+    np.testing.assert_array_equal(a.power[ka], b.power[kb])
+    np.testing.assert_array_equal(a.map_id[ka], b.map_id[kb])
+
+
+# ---------------------------------------------------------------- no NaN or inf, ever
+
+def grazing_scene():
+    """A floor seen and lit at grazing angles, a thin sliver of a box, a sphere touching the
+    floor: the places where cosines go to zero and normals flip."""
+    return small_scene(
+        [0, 0.02, 4], [0, 0, 0], size=24, spp=2, fov=30,
+        floor={"type": "rectangle", "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90),
+               "bsdf": {"type": "diffuse"}},
+        sliver={"type": "cube", "to_world": mi.ScalarTransform4f().translate([0.3, 0.0, 0])
+                .scale([0.5, 1e-4, 0.5]), "bsdf": {"type": "roughconductor"}},
+        ball={"type": "sphere", "radius": 0.2, "center": [-0.4, 0.2, 0],
+              "bsdf": {"type": "plastic"}},
+        lamp={"type": "spot", "cutoff_angle": 30,
+              "to_world": mi.ScalarTransform4f().look_at([3, 0.01, 0], [0, 0, 0], [0, 1, 0]),
+              "intensity": {"type": "rgb", "value": 50.0}},
+        sky={"type": "constant", "radiance": {"type": "rgb", "value": 0.1}})
+
+
+@pytest.mark.parametrize("integrator", [
+    {"type": "partpm", "radius": 1e-6},
+    {"type": "partpm", "radius": 100.0},
+    {"type": "partpm", "radius_fraction": 1.0, "map_count": 7, "direct": "nee"},
+    {"type": "pm", "k": 1},
+    {"type": "pm", "k": 5000, "max_radius": 1e-5},
+])
+def test_every_pixel_is_finite(integrator):
+    img = render(grazing_scene(), mi.load_dict({"photon_count": 20_000, **integrator}))
+    assert np.all(np.isfinite(img)), f"{np.count_nonzero(~np.isfinite(img))} bad pixels"
+    assert img.max() > 0
+
+
+# ---------------------------------------------------------------- reproducibility
+
+def test_reproducible_across_runs_and_map_streams_depend_on_seed_and_index_only():
+    scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=1)
+    desc = {"type": "partpm", "photon_count": 4000, "map_count": 4, "seed": 5}
+    a = render(scene, mi.load_dict(desc), seed=1)
+    assert np.array_equal(a, render(scene, mi.load_dict(desc), seed=1))     # bit-identical
+    assert not np.array_equal(a, render(scene, mi.load_dict({**desc, "seed": 6}), seed=1))
+    # Map 2 of 4 traced alone (as an MPI rank would) = map 2 of the full run.
+    full = trace_photons(scene, 4000, 4, 5)
+    alone = trace_photons(scene, 4000, 4, 5, maps=[2])
+    np.testing.assert_array_equal(full.position[full.map_id == 2], alone.position)
+
+
+# ---------------------------------------------------------------- kd-tree properties
+
+def point_sets():
+    """Random photon sets: uniform, clusters, all on a plane, duplicates, a single photon."""
+    coords = st.floats(-2, 2, allow_nan=False, width=32)
+    uniform = st.lists(st.tuples(coords, coords, coords), min_size=1, max_size=300)
+
+    def shaped(base):
+        return st.tuples(base, st.sampled_from(["as is", "plane", "duplicates", "cluster"]))
+    return shaped(uniform).map(_shape)
+
+
+def _shape(args):
+    pts, how = args
+    p = np.array(pts, dtype=np.float32).reshape(-1, 3)
+    if how == "plane":
+        p[:, 2] = 0.5
+    elif how == "duplicates":
+        p = np.repeat(p[: max(1, len(p) // 4)], 4, axis=0)
+    elif how == "cluster":
+        p = p * 1e-3 + 1.0
+    return p
+
+
+def _brute_force_radius(points, queries, r):
+    d = np.linalg.norm(queries[:, None, :].astype(np.float64) - points[None], axis=2)
+    return d, (d <= r * (1 - 1e-5)).sum(1), (d <= r * (1 + 1e-5)).sum(1)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(points=point_sets(), maps=st.integers(1, 5), r=st.floats(1e-3, 3.0),
+       seed=st.integers(0, 2**16))
+def test_fixed_radius_query_matches_brute_force(points, maps, r, seed):
+    rng = np.random.default_rng(seed)
+    queries = np.r_[points[: 20], rng.uniform(-2, 2, (10, 3))].astype(np.float32)
+    forest = build_forest(points, rng.integers(0, maps, len(points)), maps)
+    q = mi.Point3f(*[queries[:, j] for j in range(3)])
+    _, stats = radius_query(forest, q, r, lambda i, a: mi.Float(0.0), with_stats=True)
+    found = stats.photons_found.numpy()
+    _, lo, hi = _brute_force_radius(points, queries, r)
+    assert np.all(found >= lo) and np.all(found <= hi)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(points=point_sets(), k=st.integers(1, 12), seed=st.integers(0, 2**16))
+def test_knn_query_matches_brute_force(points, k, seed):
+    rng = np.random.default_rng(seed)
+    queries = np.r_[points[: 10], rng.uniform(-2, 2, (10, 3))].astype(np.float32)
+    dist, idx = knn_neighbours(build_forest(points), queries, k)
+    d, _, _ = _brute_force_radius(points, queries, 0.0)
+    ref = np.sort(d, axis=1)[:, :k]
+    kk = min(k, len(points))
+    np.testing.assert_allclose(dist[:, :kk], ref[:, :kk], rtol=1e-5, atol=1e-6)
+    assert np.all(np.isinf(dist[:, kk:])) and np.all(idx[:, kk:] == len(points))
+    # The indices name photons at those distances (ties may pick either).
+    got = np.linalg.norm(points[idx[:, :kk]].astype(np.float64) - queries[:, None], axis=2)
+    np.testing.assert_allclose(got, dist[:, :kk], rtol=1e-5, atol=1e-6)
