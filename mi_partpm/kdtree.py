@@ -121,10 +121,11 @@ def _partition_levels(pts, counts, starts, depth, node_base, split_value, split_
     Presorted build in Dr.Jit: for each axis, a permutation of the points sorted along that
     axis within every node's run (one NumPy argsort per axis, at the start). A node's bounds
     are then the first and last entries of its runs and its median the middle entry of the run
-    of its longest axis; each level partitions the three permutations stably into left and
-    right halves with one prefix sum and one scatter per axis. Every position computes its
-    node from its index (node k of level d covers [floor(k c / 2^d), floor((k+1) c / 2^d))),
-    so each level is a handful of whole-array kernels over all maps at once.
+    of its longest axis, found by one small kernel over the level's nodes. Then every position
+    looks up its node (it tracks its node index k, which becomes 2k or 2k+1 at the next
+    level) and the three permutations are partitioned stably into the left and right halves,
+    one prefix sum and one scatter per axis: a handful of whole-array kernels per level, over
+    all maps at once, with no division and no sort after the first.
     """
     n = pts.shape[0]
     if n == 0:
@@ -137,53 +138,58 @@ def _partition_levels(pts, counts, starts, depth, node_base, split_value, split_
         if n_maps == 1:
             o = np.argsort(pts[:, a])
         else:
-            span = max(float(hi_c[a] - lo_c[a]), 1e-30) * (1 + 1e-6)
             # One key per point: map index + coordinate scaled into [0, 1).
+            span = max(float(hi_c[a] - lo_c[a]), 1e-30) * (1 + 1e-6)
             o = np.argsort(map_of + (pts[:, a] - lo_c[a]) / span)
         ords.append(mi.UInt32(o.astype(np.uint32)))
     coord = [mi.Float(np.ascontiguousarray(pts[:, a])) for a in range(3)]
-    U64 = mi.UInt64
     p = dr.arange(mi.UInt32, n)
     m = mi.UInt32(map_of.astype(np.uint32))
-    # Never 0, also in the padding lanes of a SIMD packet (an integer division by 0 traps).
-    c = dr.maximum(U64(dr.gather(mi.UInt32, mi.UInt32(counts.astype(np.uint32)), m)), 1)
-    start = dr.gather(mi.UInt32, mi.UInt32(starts.astype(np.uint32)), m)
-    mdepth = dr.gather(mi.UInt32, mi.UInt32(depth.astype(np.uint32)), m)
-    nbase = dr.gather(mi.UInt32, mi.UInt32(node_base.astype(np.uint32)), m)
+    k = dr.zeros(mi.UInt32, n)                  # each position's node within its map's level
     go_right = dr.zeros(mi.UInt32, n)
-    pl = U64(p - start)
-    dr.eval(c, start, mdepth, nbase, pl)
-    levels = []
     for d in range(int(depth.max())):
-        D = U64(dr.opaque(mi.UInt32, 1 << d))
-        dd = dr.opaque(mi.UInt32, d)
-        k = ((pl + 1) * D - 1) // c
-        lo = start + mi.UInt32((k * c) // D)
-        hi = start + mi.UInt32(((k + 1) * c) // D)
-        mid = start + mi.UInt32(((2 * k + 1) * c) // (2 * D))
-        act = mdepth > dd
-        ext = [dr.gather(mi.Float, coord[a], dr.gather(mi.UInt32, ords[a], hi - 1, act), act)
-               - dr.gather(mi.Float, coord[a], dr.gather(mi.UInt32, ords[a], lo, act), act)
+        per = 1 << d
+        maps = np.nonzero(depth > d)[0]
+        # The level's nodes, map after map: their runs [lo, hi) and medians.
+        mk = np.repeat(maps, per)
+        kk = np.tile(np.arange(per, dtype=np.int64), maps.shape[0])
+        c = counts[mk]
+        lo_n = starts[mk] + (kk * c) // per
+        hi_n = starts[mk] + ((kk + 1) * c) // per
+        mid_n = starts[mk] + ((2 * kk + 1) * c) // (2 * per)
+        offset = np.full(n_maps, 0xFFFFFFFF, dtype=np.uint32)
+        offset[maps] = (np.arange(maps.shape[0]) * per).astype(np.uint32)
+
+        # Per node: longest axis from the sorted runs, and the median point's coordinate.
+        lo_j, hi_j, mid_j = (mi.UInt32(v.astype(np.uint32)) for v in (lo_n, hi_n, mid_n))
+        ext = [dr.gather(mi.Float, coord[a], dr.gather(mi.UInt32, ords[a], hi_j - 1))
+               - dr.gather(mi.Float, coord[a], dr.gather(mi.UInt32, ords[a], lo_j))
                for a in range(3)]
-        axis = dr.select((ext[0] >= ext[1]) & (ext[0] >= ext[2]), 0,
-                         dr.select(ext[1] >= ext[2], 1, 2))
-        axis = mi.UInt32(axis)
+        axis_j = mi.UInt32(dr.select((ext[0] >= ext[1]) & (ext[0] >= ext[2]), 0,
+                                     dr.select(ext[1] >= ext[2], 1, 2)))
+        split_j = dr.select(axis_j == 0, dr.gather(mi.Float, coord[0],
+                                                   dr.gather(mi.UInt32, ords[0], mid_j)),
+                  dr.select(axis_j == 1, dr.gather(mi.Float, coord[1],
+                                                   dr.gather(mi.UInt32, ords[1], mid_j)),
+                            dr.gather(mi.Float, coord[2],
+                                      dr.gather(mi.UInt32, ords[2], mid_j))))
+        dr.eval(axis_j, split_j)
+        node = node_base[mk] + (per - 1) + kk
+        split_axis[node] = axis_j.numpy()
+        split_value[node] = split_j.numpy()
+
+        # Per position: its node, side, and the stable partition of every permutation.
+        off = dr.gather(mi.UInt32, mi.UInt32(offset), m)
+        act = off != 0xFFFFFFFF
+        nid = dr.select(act, off + k, 0)
+        lo = dr.gather(mi.UInt32, lo_j, nid, act)
+        mid = dr.gather(mi.UInt32, mid_j, nid, act)
+        axis = dr.gather(mi.UInt32, axis_j, nid, act)
         right_of = mi.UInt32(p >= mid)
         for a in range(3):
             dr.scatter(go_right, right_of, ords[a], act & (axis == a))
-        # Per node: axis and split (the median point along the axis), at each run's first slot.
-        head = act & (p == lo)
-        node = nbase + mi.UInt32(D) - 1 + mi.UInt32(k)
-        med = dr.select(axis == 0, dr.gather(mi.UInt32, ords[0], mid, head),
-                        dr.select(axis == 1, dr.gather(mi.UInt32, ords[1], mid, head),
-                                  dr.gather(mi.UInt32, ords[2], mid, head)))
-        split = dr.select(axis == 0, dr.gather(mi.Float, coord[0], med, head),
-                          dr.select(axis == 1, dr.gather(mi.Float, coord[1], med, head),
-                                    dr.gather(mi.Float, coord[2], med, head)))
-        node_h = dr.compress(head)
-        levels.append((dr.gather(mi.UInt32, node, node_h), dr.gather(mi.UInt32, axis, node_h),
-                       dr.gather(mi.Float, split, node_h)))
-        dr.eval(go_right, lo, mid, act, levels[-1])
+        k = dr.select(act, 2 * k + right_of, k)
+        dr.eval(go_right, lo, mid, act, k)
         new = []
         for a in range(3):
             o = ords[a]
@@ -198,10 +204,6 @@ def _partition_levels(pts, counts, starts, depth, node_base, split_value, split_
             new.append(out)
         dr.eval(new)
         ords = new
-    for node, axis, split in levels:
-        nd = node.numpy()
-        split_axis[nd] = axis.numpy()
-        split_value[nd] = split.numpy()
     return ords[0].numpy().astype(np.int64)
 
 
