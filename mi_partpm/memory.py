@@ -27,8 +27,8 @@ DEVICE_BYTES_PER_STORED = 30
 #: Peak temporaries of the tree build per photon (three sort orders and their float64 keys,
 #: the partition's prefix sums, Dr.Jit's allocation cache). Calibrated on the largest run
 #: measured: 10^7 photons emitted into the Cornell box, 29.8 million stored, peak resident
-#: memory 11.1 GB, i.e. 374 bytes per stored photon in all.
-BUILD_BYTES_PER_STORED = 290
+#: memory 10.0 GB, i.e. 337 bytes per stored photon in all.
+BUILD_BYTES_PER_STORED = 260
 #: Tracer state per live path (ray, power, random state, surface interaction temporaries).
 TRACER_BYTES_PER_PATH = 400
 #: Eye pass state per sample (ray, throughput, sampler, film accumulation).
