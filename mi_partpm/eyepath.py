@@ -12,6 +12,9 @@ from typing import Callable
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
+
+from .kdtree import morton_order
 
 __all__ = ["eye_path_radiance", "direct_light", "first_estimate_hits"]
 
@@ -113,7 +116,9 @@ def first_estimate_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth:
     Returns
     -------
     (mi.SurfaceInteraction3f, mi.BSDFPtr, mi.UInt32)
-        The hits, their BSDFs and the index of the sample each came from (ascending).
+        The hits, their BSDFs and the index of the sample each came from. The hits are in
+        Morton order of their positions (:func:`~mi_partpm.kdtree.morton_order`), so a
+        batch of density estimates over them is spatially coherent.
     """
     cam = scene.sensors()[sensor]
     size = cam.film().crop_size()
@@ -147,5 +152,7 @@ def first_estimate_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth:
         if not dr.any(active):
             break
     keep = dr.compress(found)
+    points = np.array(dr.gather(mi.Point3f, hits.p, keep)).T
+    keep = dr.gather(mi.UInt32, keep, mi.UInt32(morton_order(points).astype(np.uint32)))
     hits = dr.gather(mi.SurfaceInteraction3f, hits, keep)
     return hits, hits.bsdf(), keep

@@ -181,3 +181,14 @@ def test_knn_rejects_bad_k():
     forest = build_forest(np.zeros((4, 3)))
     with pytest.raises(ValueError, match="k must be an integer >= 1, got 0"):
         knn_query(forest, mi.Point3f(0, 0, 0), 0)
+
+
+def test_morton_order_is_a_permutation_that_keeps_neighbours_together():
+    from mi_partpm.kdtree import morton_order
+    pts = np.random.default_rng(11).random((5000, 3))
+    order = morton_order(pts)
+    assert np.array_equal(np.sort(order), np.arange(5000))
+    step = np.linalg.norm(np.diff(pts[order], axis=0), axis=1).mean()
+    random_step = np.linalg.norm(np.diff(pts, axis=0), axis=1).mean()
+    assert step < random_step / 4, (step, random_step)
+    assert morton_order(np.zeros((0, 3))).shape == (0,)
