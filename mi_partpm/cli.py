@@ -86,6 +86,19 @@ def _scene_options(p, maps_default=8):
     p.add_argument("-q", "--quiet", action="store_true", help="print only errors")
 
 
+def _size_options(p, spp, repeats, repeats_help):
+    """The workload-size options of the experiment commands (paper sizes by default)."""
+    p.add_argument("--photons", type=_positive_int("--photons"), default=100_000,
+                   help="photons emitted N (default 100000)")
+    p.add_argument("--resolution", type=parse_resolution, default=(480, 480),
+                   help="film size WxH (default 480x480)")
+    if spp is not None:
+        p.add_argument("--spp", type=_positive_int("--spp"), default=spp,
+                       help=f"samples per pixel (default {spp})")
+    p.add_argument("--repeats", type=_positive_int("--repeats"), default=repeats,
+                   help=f"{repeats_help}; medians are reported (default {repeats})")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="partpm", description=(
         "Partitioned photon maps for Mitsuba 3 (Tamura, Takizawa, Kobayashi)."))
@@ -123,14 +136,10 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("scene", help="built-in scene name or Mitsuba XML file")
     e.add_argument("--maps", default="1,2,4,8,16,32",
                    help="comma-separated map counts n (default 1,2,4,8,16,32)")
-    e.add_argument("--photons", type=_positive_int("--photons"), default=100_000)
-    e.add_argument("--resolution", type=parse_resolution, default=(480, 480))
-    e.add_argument("--spp", type=_positive_int("--spp"), default=1)
-    e.add_argument("--repeats", type=_positive_int("--repeats"), default=3,
-                   help="timed passes over every map (default 3); medians are reported")
+    _size_options(e, spp=1, repeats=3, repeats_help="timed passes over every map")
     e.add_argument("--radius-fraction", type=_positive_float("--radius-fraction", 1.0),
-                   default=0.05)
-    e.add_argument("--seed", type=int, default=0)
+                   default=0.05, help="r as a fraction of the scene's longest side (0.05)")
+    e.add_argument("--seed", type=int, default=0, help="photon seed (default 0)")
     e.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
     e.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
     e.add_argument("--out", required=True, help="output directory (CSV, JSON, plot, workloads)")
@@ -139,9 +148,7 @@ def _parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="kd-tree and tracer benchmarks against scipy, pykdtree "
                                      "and Mitsuba's path tracer")
     b.add_argument("--scene", default="cornell_box", help="scene (default cornell_box)")
-    b.add_argument("--photons", type=_positive_int("--photons"), default=100_000)
-    b.add_argument("--resolution", type=parse_resolution, default=(480, 480))
-    b.add_argument("--repeats", type=_positive_int("--repeats"), default=5)
+    _size_options(b, spp=None, repeats=5, repeats_help="timed runs of every benchmark")
     b.add_argument("--smoke", action="store_true",
                    help="tiny sizes: checks that every benchmark runs, measures nothing")
     b.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
@@ -153,11 +160,7 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--ranks", default="1,2", help="comma-separated rank counts P (default 1,2)")
     m.add_argument("--maps", type=_positive_int("--maps"), default=8,
                    help="number of partial photon maps n (default 8)")
-    m.add_argument("--photons", type=_positive_int("--photons"), default=100_000)
-    m.add_argument("--resolution", type=parse_resolution, default=(480, 480))
-    m.add_argument("--spp", type=_positive_int("--spp"), default=4)
-    m.add_argument("--repeats", type=_positive_int("--repeats"), default=3,
-                   help="runs per P; the table shows medians (default 3)")
+    _size_options(m, spp=4, repeats=3, repeats_help="runs per P")
     m.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
     m.add_argument("--hostfile", help="MPI hostfile, passed to mpiexec -f (clusters)")
     m.add_argument("--out", required=True, help="output directory (CSV, JSON, images)")
