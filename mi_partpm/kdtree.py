@@ -1,4 +1,4 @@
-"""Balanced kd-trees over photon maps, and the fixed-radius query over all of them.
+"""Balanced kd-trees over photon maps, and the fixed-radius and kNN queries over them.
 
 A *forest* holds the n partial photon maps of eq. (2) of the paper, one kd-tree per map, in flat
 arrays. Every tree is balanced and implicit: node ``j`` of a map has children ``2j+1`` and
@@ -7,10 +7,12 @@ arrays. Every tree is balanced and implicit: node ``j`` of a map has children ``
 ``d`` covering ``c`` photons is split at their median along the longest axis of the node's
 bounding box (paper, section 2.1), so all leaves of a map sit at the same depth.
 
-The build runs on the host with NumPy, one vectorised pass per tree level over all maps at
-once (no Python loop over nodes or maps). The query runs in Dr.Jit, one lane per query point,
-as a stackless walk of the implicit tree: it descends into every child whose half-space the
-query ball reaches and climbs back through parents, so it needs no per-lane stack.
+The build sorts the photons once per axis (NumPy), then splits one tree level at a time over
+all maps at once in Dr.Jit (no Python loop over nodes or maps). The queries run in Dr.Jit, one
+lane per query point, as stackless walks of the implicit tree: the fixed-radius walk descends
+into every child whose half-space the query ball reaches and climbs back through parents, so
+it needs no per-lane stack; the kNN walk visits the nearer child first and keeps the k best
+photons in a per-lane heap in local memory.
 """
 from __future__ import annotations
 
