@@ -1,0 +1,151 @@
+"""The hardware configuration of a simulated PE array, with units, defaults and validation.
+
+Load from TOML (:func:`load_config`) or build in Python; every invalid value raises a
+ValueError naming the field, the value and what is allowed. Defaults describe a plausible
+FPGA-class design and are assumptions, not measurements (see the sensitivity sweep).
+
+TOML layout (every key optional)::
+
+    pe_count = 32                  # processing elements, >= 1
+    clock_hz = 200e6               # PE and network clock
+    cycles_per_node = 4            # per kd-tree node visited
+    cycles_per_test = 3            # per photon distance test
+    cycles_per_accumulate = 2      # per photon found (f_r * power added)
+    outstanding_queries = 4        # queries in flight per PE (hides DRAM latency)
+    bytes_per_result = 12          # one partial radiance (RGB float32)
+    gather_schedule = "after"      # "after" the queries, or "tiles" overlapped with them
+    tile_queries = 4096            # queries per tile when gather_schedule = "tiles"
+
+    [memory]
+    sram_bytes = 2097152           # local SRAM per PE; a map larger than this lives in DRAM
+    dram_bytes_per_cycle = 16      # DRAM bandwidth per PE
+    dram_latency_cycles = 100
+    dram_burst_bytes = 64
+
+    [gather]
+    topology = "tree"              # "bus", "tree" or "ring"
+    pipelined = true               # adder tree streams results level to level
+    hop_latency_cycles = 2
+    link_bytes_per_cycle = 8
+    adder_latency_cycles = 4
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+
+__all__ = ["MemoryConfig", "GatherConfig", "HardwareConfig", "load_config", "TOPOLOGIES"]
+
+TOPOLOGIES = ("bus", "tree", "ring")
+SCHEDULES = ("after", "tiles")
+
+
+def _check_number(owner, name, value, low=0.0, low_open=True, integer=False):
+    what = f"{owner}.{name}" if owner else name
+    kind = "an integer" if integer else "a finite number"
+    bound = f"{'>' if low_open else '>='} {low:g}"
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+            (integer and not float(value).is_integer()):
+        raise ValueError(f"{what} must be {kind} {bound}, got {value!r}")
+    if not math.isfinite(value) or (value <= low if low_open else value < low):
+        raise ValueError(f"{what} must be {kind} {bound}, got {value!r}")
+
+
+@dataclass(frozen=True)
+class MemoryConfig:
+    """A PE's storage levels: local SRAM, and the DRAM behind it for maps that do not fit."""
+
+    sram_bytes: int = 2 * 1024 * 1024
+    dram_bytes_per_cycle: float = 16.0
+    dram_latency_cycles: float = 100.0
+    dram_burst_bytes: int = 64
+
+    def __post_init__(self):
+        _check_number("memory", "sram_bytes", self.sram_bytes, 0, low_open=False, integer=True)
+        _check_number("memory", "dram_bytes_per_cycle", self.dram_bytes_per_cycle)
+        _check_number("memory", "dram_latency_cycles", self.dram_latency_cycles, 0,
+                      low_open=False)
+        _check_number("memory", "dram_burst_bytes", self.dram_burst_bytes, integer=True)
+
+
+@dataclass(frozen=True)
+class GatherConfig:
+    """The network that sums the PEs' partial results (the gather of eq. 2)."""
+
+    topology: str = "tree"
+    pipelined: bool = True
+    hop_latency_cycles: float = 2.0
+    link_bytes_per_cycle: float = 8.0
+    adder_latency_cycles: float = 4.0
+
+    def __post_init__(self):
+        if self.topology not in TOPOLOGIES:
+            raise ValueError(f"gather.topology must be one of {', '.join(TOPOLOGIES)}, "
+                             f"got {self.topology!r}")
+        if not isinstance(self.pipelined, bool):
+            raise ValueError(f"gather.pipelined must be true or false, got {self.pipelined!r}")
+        _check_number("gather", "hop_latency_cycles", self.hop_latency_cycles, 0,
+                      low_open=False)
+        _check_number("gather", "link_bytes_per_cycle", self.link_bytes_per_cycle)
+        _check_number("gather", "adder_latency_cycles", self.adder_latency_cycles, 0,
+                      low_open=False)
+
+
+@dataclass(frozen=True)
+class HardwareConfig:
+    """A PE array: every PE holds whole maps and answers every query on them."""
+
+    pe_count: int = 32
+    clock_hz: float = 200e6
+    cycles_per_node: float = 4.0
+    cycles_per_test: float = 3.0
+    cycles_per_accumulate: float = 2.0
+    outstanding_queries: int = 4
+    bytes_per_result: int = 12
+    gather_schedule: str = "after"
+    tile_queries: int = 4096
+    memory: MemoryConfig = field(default_factory=MemoryConfig)
+    gather: GatherConfig = field(default_factory=GatherConfig)
+
+    def __post_init__(self):
+        _check_number("", "pe_count", self.pe_count, 1, low_open=False, integer=True)
+        _check_number("", "clock_hz", self.clock_hz)
+        for name in ("cycles_per_node", "cycles_per_test", "cycles_per_accumulate"):
+            _check_number("", name, getattr(self, name), 0, low_open=False)
+        _check_number("", "outstanding_queries", self.outstanding_queries, 1, low_open=False,
+                      integer=True)
+        _check_number("", "bytes_per_result", self.bytes_per_result, integer=True)
+        if self.gather_schedule not in SCHEDULES:
+            raise ValueError(f"gather_schedule must be one of {', '.join(SCHEDULES)}, got "
+                             f"{self.gather_schedule!r}")
+        _check_number("", "tile_queries", self.tile_queries, 1, low_open=False, integer=True)
+
+    def with_(self, **changes) -> "HardwareConfig":
+        """A copy with some fields changed (``memory``/``gather`` fields as dicts)."""
+        for key in ("memory", "gather"):
+            if isinstance(changes.get(key), dict):
+                changes[key] = replace(getattr(self, key), **changes[key])
+        return replace(self, **changes)
+
+
+def _from_dict(cls, data: dict, where: str):
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ValueError(f"unknown key{'s' if len(unknown) > 1 else ''} in {where}: "
+                         f"{', '.join(unknown)} (known: {', '.join(sorted(known))})")
+    return data
+
+
+def load_config(path=None, **overrides) -> HardwareConfig:
+    """A :class:`HardwareConfig` from a TOML file (defaults for what it leaves out)."""
+    data = {}
+    if path is not None:
+        import tomllib
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    data.update(overrides)
+    memory = _from_dict(MemoryConfig, dict(data.pop("memory", {})), "[memory]")
+    gather = _from_dict(GatherConfig, dict(data.pop("gather", {})), "[gather]")
+    top = _from_dict(HardwareConfig, data, "the top level")
+    return HardwareConfig(**top, memory=MemoryConfig(**memory), gather=GatherConfig(**gather))

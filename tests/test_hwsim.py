@@ -1,0 +1,115 @@
+"""hwsim: configuration checks and the analytic model against hand-computed cycle counts."""
+import numpy as np
+import pytest
+
+from hwsim.config import HardwareConfig, load_config
+from hwsim.model import gather_cycles, simulate
+from hwsim.workload import MapWorkloads
+
+
+def workload(nodes, tested, found, map_bytes=None):
+    """n maps x Q queries from nested lists."""
+    nodes, tested, found = (np.array(a, dtype=np.uint32) for a in (nodes, tested, found))
+    n = nodes.shape[0]
+    return MapWorkloads(n=n, nodes_visited=nodes, photons_tested=tested, photons_found=found,
+                        map_photons=np.full(n, 100), map_bytes=np.array(
+                            map_bytes if map_bytes is not None else [1000] * n),
+                        map_seconds=np.zeros((n, 0)))
+
+
+BASE = HardwareConfig(pe_count=1, clock_hz=100.0, cycles_per_node=4, cycles_per_test=3,
+                      cycles_per_accumulate=2)
+
+
+def test_one_pe_by_hand():
+    # Map 0, two queries: (10 nodes, 20 tested, 5 found), (6, 8, 2).
+    # Cycles: 10*4 + 20*3 + 5*2 = 110 and 6*4 + 8*3 + 2*2 = 52: 162 in all, no gather.
+    r = simulate(BASE, workload([[10, 6]], [[20, 8]], [[5, 2]]))
+    assert r.frame_cycles == 162 and r.gather_cycles == 0
+    assert r.seconds == pytest.approx(1.62) and r.queries_per_second == pytest.approx(2 / 1.62)
+    assert r.utilisation.tolist() == [1.0] and r.load_imbalance == 1.0
+
+
+def test_two_pes_with_imbalance_and_a_bus_gather():
+    # Map 0 on PE 0: 1 query, 10 nodes -> 40 cycles; map 1 on PE 1: 1 query, 5 nodes -> 20.
+    cfg = BASE.with_(pe_count=2, gather={"topology": "bus", "link_bytes_per_cycle": 4,
+                                         "hop_latency_cycles": 1, "adder_latency_cycles": 2})
+    r = simulate(cfg, workload([[10], [5]], [[0], [0]], [[0], [0]]))
+    # Bus: 2 PEs x 1 result x 12 bytes / 4 bytes per cycle = 6, + hop 1 + adder 2 = 9.
+    assert r.compute_cycles == 40 and r.gather_cycles == 9 and r.frame_cycles == 49
+    assert r.pe_idle.tolist() == [9, 29]
+    assert r.load_imbalance == pytest.approx(40 / 30)
+    assert r.gather_share == pytest.approx(9 / 49)
+
+
+def test_tree_gather_store_and_forward_vs_pipelined():
+    cfg = BASE.with_(gather={"topology": "tree", "link_bytes_per_cycle": 12,
+                             "hop_latency_cycles": 2, "adder_latency_cycles": 3})
+    # 8 PEs, 100 results: transfer 100 * 12 / 12 = 100 cycles; 3 levels of (2 + 3).
+    assert gather_cycles(cfg, 8, 100) == 100 + 3 * 5
+    cfg = cfg.with_(gather={"pipelined": False})
+    assert gather_cycles(cfg, 8, 100) == 3 * (100 + 5)
+    assert gather_cycles(cfg.with_(gather={"topology": "bus"}), 8, 100) == 8 * 100 + 5
+    assert gather_cycles(cfg.with_(gather={"topology": "ring"}), 8, 100) == 7 * (100 + 5)
+    assert gather_cycles(cfg, 1, 100) == 0
+
+
+def test_a_map_that_spills_to_dram_stalls():
+    cfg = BASE.with_(memory={"sram_bytes": 500, "dram_bytes_per_cycle": 1,
+                             "dram_latency_cycles": 10, "dram_burst_bytes": 64},
+                     outstanding_queries=2)
+    w = workload([[2]], [[4]], [[1]], map_bytes=[1000])
+    r = simulate(cfg, w, bytes_per_node=8, bytes_per_photon=28)
+    # Compute 2*4 + 4*3 + 1*2 = 22. Bytes: 2*8 + 4*12 + 1*16 = 80 -> 2 bursts = 128 bytes,
+    # 128 cycles at 1 byte per cycle; latency 2 nodes * 10 / 2 = 10. Memory 128, stall 106.
+    assert r.pe_busy.tolist() == [22] and r.pe_stall.tolist() == [106]
+    assert r.frame_cycles == 128 and r.dram_bytes.tolist() == [128]
+    fits = simulate(cfg.with_(memory={"sram_bytes": 1000}), w)
+    assert fits.frame_cycles == 22 and fits.sram_bytes.tolist() == [1000]
+
+
+def test_tiled_gather_overlaps_the_compute():
+    cfg = BASE.with_(pe_count=2, gather_schedule="tiles", tile_queries=1,
+                     gather={"topology": "bus", "link_bytes_per_cycle": 12,
+                             "hop_latency_cycles": 0, "adder_latency_cycles": 0})
+    w = workload([[10, 10], [10, 10]], [[0, 0]] * 2, [[0, 0]] * 2)
+    r = simulate(cfg, w)
+    # Compute 80 per PE; gather of 2 results from 2 PEs: 4 cycles; one tile: 2 cycles.
+    assert r.frame_cycles == 80 + 2 and r.exposed_gather_cycles == 2
+
+
+def test_more_pes_never_slow_the_frame_unless_the_gather_grows():
+    rng = np.random.default_rng(3)
+    n, q = 16, 200
+    w = workload(rng.integers(5, 50, (n, q)), rng.integers(0, 100, (n, q)),
+                 rng.integers(0, 30, (n, q)))
+    frames = [simulate(BASE.with_(pe_count=p), w) for p in (1, 2, 4, 8, 16)]
+    for a, b in zip(frames, frames[1:]):
+        assert b.compute_cycles <= a.compute_cycles
+        assert b.frame_cycles <= a.frame_cycles or \
+            b.gather_cycles - a.gather_cycles >= b.frame_cycles - a.frame_cycles
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"pe_count": 0}, r"pe_count must be an integer >= 1, got 0"),
+    ({"clock_hz": -1}, r"clock_hz must be a finite number > 0, got -1"),
+    ({"gather_schedule": "never"}, r"gather_schedule must be one of after, tiles"),
+    ({"gather": {"topology": "mesh"}}, r"gather.topology must be one of bus, tree, ring"),
+    ({"memory": {"dram_bytes_per_cycle": 0}}, r"memory.dram_bytes_per_cycle must be"),
+    ({"cycles_per_node": float("nan")}, r"cycles_per_node must be a finite number"),
+])
+def test_invalid_configs_name_the_field(changes, message):
+    with pytest.raises(ValueError, match=message):
+        load_config(**changes)
+
+
+def test_config_from_toml(tmp_path):
+    path = tmp_path / "hw.toml"
+    path.write_text('pe_count = 8\n[gather]\ntopology = "ring"\n[memory]\nsram_bytes = 1024\n')
+    cfg = load_config(path)
+    assert cfg.pe_count == 8 and cfg.gather.topology == "ring" and cfg.memory.sram_bytes == 1024
+    path.write_text("pe_cuont = 8\n")
+    with pytest.raises(ValueError, match="unknown key in the top level: pe_cuont"):
+        load_config(path)
+    with pytest.raises(ValueError, match="pe_count must be <= the number of maps n = 2"):
+        simulate(BASE.with_(pe_count=4), workload([[1], [1]], [[1], [1]], [[1], [1]]))
