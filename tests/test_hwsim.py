@@ -113,3 +113,21 @@ def test_config_from_toml(tmp_path):
         load_config(path)
     with pytest.raises(ValueError, match="pe_count must be <= the number of maps n = 2"):
         simulate(BASE.with_(pe_count=4), workload([[1], [1]], [[1], [1]], [[1], [1]]))
+
+
+def test_calibration_recovers_known_costs_and_predicts_another_workload():
+    from hwsim.calibrate import check, fit, synthetic_workloads
+    truth = (2e-8, 1e-8, 5e-9, 1e-4)
+    costs = fit(synthetic_workloads(seed=1, costs=truth))
+    np.testing.assert_allclose([costs.per_node, costs.per_test, costs.per_found, costs.fixed],
+                               truth, rtol=1e-3)
+    other = synthetic_workloads(seed=2, queries=800, costs=truth, noise=0.02)
+    report = check(costs, other)
+    assert report["r2"] > 0.98 and report["max_rel_error"] < 0.1
+    assert set(report["per_n"]) == {1, 2, 4, 8}
+
+
+def test_synthetic_workload_is_seeded():
+    from hwsim.calibrate import synthetic_workloads
+    a, b = synthetic_workloads(seed=5), synthetic_workloads(seed=5)
+    assert all(np.array_equal(a[n].nodes_visited, b[n].nodes_visited) for n in a)
