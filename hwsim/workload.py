@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MapWorkloads", "load_workloads", "FORMAT_VERSION"]
+__all__ = ["MapWorkloads", "load_workloads", "save_workloads", "FORMAT_VERSION"]
 
 FORMAT_VERSION = 1
 
@@ -60,3 +60,26 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
                                  f"({n}, {meta['queries']})")
         loads[n] = w
     return meta, loads
+
+
+def save_workloads(directory, loads: dict, **meta) -> Path:
+    """Write ``{n: MapWorkloads}`` in the WORKLOAD.md format (``meta`` adds or overrides keys
+    of meta.json, e.g. ``scene``, ``radius``)."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    queries = {w.queries for w in loads.values()}
+    if len(queries) != 1:
+        raise ValueError(f"every n must have the same queries, got counts {sorted(queries)}")
+    info = {"version": FORMAT_VERSION, "scene": "synthetic", "queries": queries.pop(),
+            "radius": 0.0, "photons_emitted": 0,
+            "photons_stored": int(next(iter(loads.values())).map_photons.sum()),
+            "leaf_size": 16, "bytes_per_photon": 28, "bytes_per_node": 8,
+            "maps": sorted(loads), "files": {str(n): f"n{n}.npz" for n in sorted(loads)}}
+    info.update(meta)
+    for n, w in loads.items():
+        np.savez_compressed(d / f"n{n}.npz", nodes_visited=w.nodes_visited,
+                            photons_tested=w.photons_tested, photons_found=w.photons_found,
+                            map_photons=w.map_photons, map_bytes=w.map_bytes,
+                            map_seconds=w.map_seconds, version=np.int64(FORMAT_VERSION))
+    (d / "meta.json").write_text(json.dumps(info, indent=2) + "\n")
+    return d

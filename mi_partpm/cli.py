@@ -155,6 +155,12 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--out", help="write the table as JSON to this file")
     b.add_argument("-q", "--quiet", action="store_true", help="print only the table")
 
+    h = sub.add_parser("hwsim", help="simulate a PE array on the workloads of 'partpm speedup'")
+    h.add_argument("workloads", help="a workloads/ directory written by 'partpm speedup'")
+    h.add_argument("--config", help="hardware configuration (TOML; see hwsim/config.py)")
+    h.add_argument("--out", required=True, help="output directory (JSON, CSV, plots)")
+    h.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
     m = sub.add_parser("scaling", help="strong scaling of the MPI backend over P ranks")
     m.add_argument("scene", help="built-in scene name or Mitsuba XML file")
     m.add_argument("--ranks", default="1,2", help="comma-separated rank counts P (default 1,2)")
@@ -376,6 +382,20 @@ def _bench(args) -> int:
     return 0
 
 
+def _hwsim(args) -> int:
+    from hwsim.config import load_config
+    from hwsim.report import format_report, run_report
+    try:
+        config = load_config(args.config)
+        result = run_report(args.workloads, config, args.out)
+    except (OSError, ValueError) as e:
+        raise UsageError(str(e)) from None
+    if not args.quiet:
+        print(format_report(result))
+        print(f"wrote    {args.out}/report.json, report.csv, sweep.csv, hwsim.png")
+    return 0
+
+
 def _speedup(args) -> int:
     args.list, args.command = False, "speedup"
     _setup(args)
@@ -425,6 +445,8 @@ def main(argv=None) -> int:
             return _speedup(args)
         if args.command == "bench":
             return _bench(args)
+        if args.command == "hwsim":
+            return _hwsim(args)
     except UsageError as e:
         print(f"partpm: error: {e}", file=sys.stderr)
         return 2

@@ -131,3 +131,42 @@ def test_synthetic_workload_is_seeded():
     from hwsim.calibrate import synthetic_workloads
     a, b = synthetic_workloads(seed=5), synthetic_workloads(seed=5)
     assert all(np.array_equal(a[n].nodes_visited, b[n].nodes_visited) for n in a)
+
+
+def _synthetic_dir(tmp_path):
+    from hwsim.calibrate import synthetic_workloads
+    from hwsim.workload import save_workloads
+    return save_workloads(tmp_path / "workloads", synthetic_workloads(
+        maps=(1, 2, 4, 8), queries=300, seed=7), scene="synthetic seed 7")
+
+
+def test_report_on_a_seeded_workload_matches_the_golden_report(tmp_path):
+    """The golden file pins the model's numbers on a fixed workload: a change of the model
+    shows up here, and then the file is regenerated on purpose (see the test's end)."""
+    import json
+    from pathlib import Path
+    from hwsim.report import run_report
+    result = run_report(_synthetic_dir(tmp_path), HardwareConfig(), tmp_path / "out")
+    keep = ("n", "frame_cycles", "compute_cycles", "gather_cycles", "speedup",
+            "load_imbalance")
+    got = [{k: r[k] for k in keep} for r in result["rows"]]
+    golden = Path(__file__).parent / "golden" / "hwsim_synthetic_seed7.json"
+    if not golden.exists():      # first run: write it, and fail so that it gets reviewed
+        golden.write_text(json.dumps(got, indent=1) + "\n")
+        pytest.fail(f"wrote {golden}; review and commit it")
+    want = json.loads(golden.read_text())
+    for g, w in zip(got, want):
+        for k in keep:
+            assert g[k] == pytest.approx(w[k], rel=1e-9), (g["n"], k)
+    assert (tmp_path / "out" / "hwsim.png").stat().st_size > 1000
+
+
+def test_hwsim_cli(tmp_path, capsys):
+    from mi_partpm.cli import main
+    assert main(["hwsim", str(_synthetic_dir(tmp_path)), "--out", str(tmp_path / "r")]) == 0
+    assert "w/o gather" in capsys.readouterr().out
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text('[gather]\ntopology = "mesh"\n')
+    assert main(["hwsim", str(tmp_path / "workloads"), "--config", str(cfg), "--out",
+                 str(tmp_path / "r")]) == 2
+    assert "gather.topology must be one of bus, tree, ring" in capsys.readouterr().err

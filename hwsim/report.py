@@ -1,0 +1,136 @@
+"""Reports of a simulated PE array over the recorded workloads: tables, CSV/JSON, plots, sweeps.
+
+For every recorded n the array has one PE per map (the paper's proposal) and the frame is
+simulated with and without the gather; the speedup against n = 1 shows what the gather costs.
+For the largest n, a sweep over PE counts P (maps shared round-robin) and gather topologies
+shows where adding PEs stops paying: the first P from which doubling P shortens the frame by
+less than 5%.
+"""
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from .config import TOPOLOGIES, HardwareConfig
+from .model import simulate
+from .workload import load_workloads
+
+__all__ = ["run_report", "format_report"]
+
+
+def _simulate(config, w, meta):
+    return simulate(config, w, meta.get("bytes_per_node", 8), meta.get("bytes_per_photon", 28))
+
+
+def run_report(workload_dir, config: HardwareConfig, out_dir) -> dict:
+    meta, loads = load_workloads(workload_dir)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ns = sorted(loads)
+    rows = []
+    base_nodes = float(loads[ns[0]].nodes_visited.sum()) if ns[0] == 1 else None
+    for n in ns:
+        cfg = config.with_(pe_count=n)
+        r = _simulate(cfg, loads[n], meta)
+        rows.append({"n": n, "pe_count": n, "frame_cycles": r.frame_cycles,
+                     "compute_cycles": r.compute_cycles, "gather_cycles": r.gather_cycles,
+                     "seconds": r.seconds, "frames_per_second": r.frames_per_second,
+                     "queries_per_second": r.queries_per_second,
+                     "load_imbalance": r.load_imbalance, "gather_share": r.gather_share,
+                     "utilisation_mean": float(r.utilisation.mean()),
+                     "dram_bytes_max": float(r.dram_bytes.max()),
+                     "replicated_traversal": (r.nodes_visited / base_nodes
+                                              if base_nodes else float("nan"))})
+    for row in rows:
+        row["speedup"] = rows[0]["frame_cycles"] / row["frame_cycles"]
+        row["speedup_without_gather"] = rows[0]["compute_cycles"] / row["compute_cycles"]
+        row["efficiency"] = row["speedup"] / row["n"] * rows[0]["n"]
+
+    n_max = ns[-1]
+    sweep = []
+    pes = [p for p in (1, 2, 4, 8, 16, 32, 64, 128, 256) if p <= n_max]
+    if n_max not in pes:
+        pes.append(n_max)
+    for topology in TOPOLOGIES:
+        for p in pes:
+            cfg = config.with_(pe_count=p, gather={"topology": topology})
+            r = _simulate(cfg, loads[n_max], meta)
+            sweep.append({"topology": topology, "pe_count": p, "frame_cycles": r.frame_cycles,
+                          "gather_cycles": r.gather_cycles, "seconds": r.seconds,
+                          "gather_share": r.gather_share})
+    saturation = {}
+    for topology in TOPOLOGIES:
+        pts = [s for s in sweep if s["topology"] == topology]
+        sat = pts[-1]["pe_count"]
+        for a, b in zip(pts, pts[1:]):
+            if b["frame_cycles"] > 0.95 * a["frame_cycles"]:
+                sat = a["pe_count"]
+                break
+        saturation[topology] = sat
+    detail = _simulate(config.with_(pe_count=n_max), loads[n_max], meta)
+    result = {"config": asdict(config), "workload": {k: meta[k] for k in (
+        "scene", "queries", "radius", "photons_stored") if k in meta},
+        "rows": rows, "sweep": sweep, "saturation_pe_count": saturation,
+        "largest_n": detail.as_dict()}
+    (out / "report.json").write_text(json.dumps(result, indent=2) + "\n")
+    for name, data in (("report.csv", rows), ("sweep.csv", sweep)):
+        with open(out / name, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(data[0]))
+            writer.writeheader()
+            writer.writerows(data)
+    _plots(rows, sweep, detail, out, meta.get("scene", ""))
+    return result
+
+
+def _plots(rows, sweep, detail, out, scene):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    n = [r["n"] for r in rows]
+    fig, ax = plt.subplots(1, 3, figsize=(14, 4))
+    ax[0].plot(n, n, "k--", label="ideal")
+    ax[0].plot(n, [r["speedup_without_gather"] for r in rows], "s:", label="without gather")
+    ax[0].plot(n, [r["speedup"] for r in rows], "o-", label="with gather")
+    ax[0].set_xscale("log", base=2)
+    ax[0].set_yscale("log", base=2)
+    ax[0].set_xlabel("maps n = PEs")
+    ax[0].set_ylabel("frame speedup vs n = 1")
+    ax[0].legend(fontsize=8)
+    ax[0].set_title(f"{scene}: simulated speedup", fontsize=10)
+    ax[1].bar(range(detail.pe_count), detail.utilisation)
+    ax[1].set_xlabel("PE")
+    ax[1].set_ylabel("utilisation (busy / frame)")
+    ax[1].set_title(f"n = {detail.map_count}: utilisation per PE", fontsize=10)
+    for topology in TOPOLOGIES:
+        pts = [s for s in sweep if s["topology"] == topology]
+        ax[2].plot([s["pe_count"] for s in pts], [s["seconds"] * 1e3 for s in pts], "o-",
+                   label=topology)
+    ax[2].set_xscale("log", base=2)
+    ax[2].set_yscale("log")
+    ax[2].set_xlabel("PEs P")
+    ax[2].set_ylabel("frame time (ms)")
+    ax[2].set_title(f"n = {detail.map_count}: PE count and gather topology", fontsize=10)
+    ax[2].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "hwsim.png", dpi=110)
+    plt.close(fig)
+
+
+def format_report(result) -> str:
+    lines = [f"{'n=PEs':>5} {'frame ms':>9} {'fps':>8} {'speedup':>8} {'w/o gather':>10} "
+             f"{'gather %':>8} {'imbalance':>9} {'util':>5} {'DRAM MB':>8} {'nodes x':>7}"]
+    for r in result["rows"]:
+        lines.append(f"{r['n']:5d} {r['seconds'] * 1e3:9.2f} {r['frames_per_second']:8.2f} "
+                     f"{r['speedup']:8.2f} {r['speedup_without_gather']:10.2f} "
+                     f"{r['gather_share'] * 100:8.2f} {r['load_imbalance']:9.3f} "
+                     f"{r['utilisation_mean']:5.2f} {r['dram_bytes_max'] / 1e6:8.1f} "
+                     f"{r['replicated_traversal']:7.2f}")
+    n = result["largest_n"]["map_count"]
+    parts = [f"{k}: P = {v}" if v < n else f"{k}: still paying at P = {v} = n"
+             for k, v in result["saturation_pe_count"].items()]
+    lines.append(f"where doubling the PEs gains under 5% (n = {n}): {'; '.join(parts)}")
+    return "\n".join(lines)
