@@ -19,7 +19,45 @@ from .config import TOPOLOGIES, HardwareConfig
 from .model import simulate
 from .workload import load_workloads
 
-__all__ = ["run_report", "format_report"]
+__all__ = ["run_report", "format_report", "sensitivity", "ASSUMED"]
+
+#: The constants an FPGA design would fix, which this model can only assume.
+ASSUMED = ("cycles_per_node", "cycles_per_test", "cycles_per_accumulate",
+           "outstanding_queries", "memory.sram_bytes", "memory.dram_bytes_per_cycle",
+           "memory.dram_latency_cycles", "gather.hop_latency_cycles",
+           "gather.link_bytes_per_cycle", "gather.adder_latency_cycles")
+
+
+def _scaled(config, name, factor):
+    if "." in name:
+        group, key = name.split(".")
+        value = getattr(getattr(config, group), key)
+        new = type(value)(value * factor) if not isinstance(value, int) else \
+            max(1, int(round(value * factor)))
+        return config.with_(**{group: {key: new}})
+    value = getattr(config, name)
+    new = max(1, int(round(value * factor))) if isinstance(value, int) else value * factor
+    return config.with_(**{name: new})
+
+
+def sensitivity(config, loads, meta, factors=(0.5, 2.0)) -> list:
+    """Each assumed constant times 0.5 and 2: the speedup at the largest n (with the gather,
+    one PE per map) and the gather's share of the frame, against the unchanged config."""
+    ns = sorted(loads)
+    first, last = ns[0], ns[-1]
+
+    def measure(cfg):
+        a = _simulate(cfg.with_(pe_count=first), loads[first], meta)
+        b = _simulate(cfg.with_(pe_count=last), loads[last], meta)
+        return a.frame_cycles / b.frame_cycles, b.gather_share
+    speedup0, share0 = measure(config)
+    rows = [{"constant": "(as configured)", "factor": 1.0, "speedup": speedup0,
+             "gather_share": share0}]
+    for name in ASSUMED:
+        for f in factors:
+            sp, sh = measure(_scaled(config, name, f))
+            rows.append({"constant": name, "factor": f, "speedup": sp, "gather_share": sh})
+    return rows
 
 
 def _simulate(config, w, meta):
@@ -72,12 +110,14 @@ def run_report(workload_dir, config: HardwareConfig, out_dir) -> dict:
                 break
         saturation[topology] = sat
     detail = _simulate(config.with_(pe_count=n_max), loads[n_max], meta)
+    sens = sensitivity(config, loads, meta)
     result = {"config": asdict(config), "workload": {k: meta[k] for k in (
         "scene", "queries", "radius", "photons_stored") if k in meta},
         "rows": rows, "sweep": sweep, "saturation_pe_count": saturation,
+        "sensitivity": sens,
         "largest_n": detail.as_dict()}
     (out / "report.json").write_text(json.dumps(result, indent=2) + "\n")
-    for name, data in (("report.csv", rows), ("sweep.csv", sweep)):
+    for name, data in (("report.csv", rows), ("sweep.csv", sweep), ("sensitivity.csv", sens)):
         with open(out / name, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=list(data[0]))
             writer.writeheader()
@@ -133,4 +173,14 @@ def format_report(result) -> str:
     parts = [f"{k}: P = {v}" if v < n else f"{k}: still paying at P = {v} = n"
              for k, v in result["saturation_pe_count"].items()]
     lines.append(f"where doubling the PEs gains under 5% (n = {n}): {'; '.join(parts)}")
+    sens = result.get("sensitivity", [])
+    if sens:
+        speeds = [r["speedup"] for r in sens]
+        shares = [r["gather_share"] for r in sens]
+        worst = min(sens, key=lambda r: r["speedup"])
+        lines.append(f"sensitivity (each assumed constant x0.5 and x2): speedup at n = {n} "
+                     f"{min(speeds):.2f}-{max(speeds):.2f} (as configured "
+                     f"{sens[0]['speedup']:.2f}; lowest with {worst['constant']} "
+                     f"x{worst['factor']:g}), gather share {min(shares) * 100:.2f}-"
+                     f"{max(shares) * 100:.2f}%")
     return "\n".join(lines)
