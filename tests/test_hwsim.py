@@ -170,3 +170,13 @@ def test_hwsim_cli(tmp_path, capsys):
     assert main(["hwsim", str(tmp_path / "workloads"), "--config", str(cfg), "--out",
                  str(tmp_path / "r")]) == 2
     assert "gather.topology must be one of bus, tree, ring" in capsys.readouterr().err
+
+
+def test_hwsim_never_imports_mitsuba():
+    import subprocess
+    import sys
+    code = ("import sys, hwsim.config, hwsim.model, hwsim.report, hwsim.calibrate, "
+            "hwsim.workload; bad = [m for m in ('mitsuba', 'drjit', 'mi_partpm') "
+            "if m in sys.modules]; print(bad); sys.exit(1 if bad else 0)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr
