@@ -91,19 +91,23 @@ class PartPMIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props=None):
         super().__init__(props if props is not None else mi.Properties())
+        self.maps = None
+        self.radius = None
+        self.stats = {}
+        self.comm = None
+        self._rendering = False
+        self.read_props(props)
+
+    def read_props(self, props):
+        """Read and check this plugin's props (subclasses read their own)."""
         self.params = read_photon_map_params(props)
         self.map_count = read_int(props, "map_count", 1, low=1, high=self.params.photon_count,
                                   allowed=f"in [1, photon_count = {self.params.photon_count}]")
         self.backend = read_choice(props, "backend", "local", ("local", "mpi"))
-        self.comm = None
         if self.backend == "mpi":
             self.comm = mpi.comm_world()
             mpi.check_ranks(self.comm.size, self.map_count)
             mpi.share_cores(self.comm)
-        self.maps = None
-        self.radius = None
-        self.stats = {}
-        self._rendering = False
 
     # ------------------------------------------------------------------ phases
 

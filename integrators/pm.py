@@ -51,8 +51,7 @@ class PMIntegrator(partpm.PartPMIntegrator):
         </integrator>
     """
 
-    def __init__(self, props=None):
-        mi.SamplingIntegrator.__init__(self, props if props is not None else mi.Properties())
+    def read_props(self, props):
         self.params = read_photon_map_params(props, fixed_radius=False)
         n = self.params.photon_count
         self.k = read_int(props, "k", 50, low=1, high=n,
@@ -60,11 +59,7 @@ class PMIntegrator(partpm.PartPMIntegrator):
         has_cap = props is not None and "max_radius" in props
         self.max_radius = read_float(props, "max_radius", None, low=0.0) if has_cap else None
         self.map_count = 1
-        self.backend, self.comm = "local", None
-        self.maps = None
-        self.radius = None
-        self.stats = {}
-        self._rendering = False
+        self.backend = "local"
         self._acc = None
 
     def search_radius(self, scene):

@@ -191,7 +191,7 @@ def _setup(args, needs_plugins=True):
     import mi_partpm  # noqa: F401  (registers the plugins)
     from .scenes import scene_names
 
-    if args.list:
+    if getattr(args, "list", False):
         print("\n".join(scene_names()))
         return False
     if not args.scene:
@@ -317,6 +317,11 @@ def format_ranks(ranks) -> str:
     return "\n".join(lines)
 
 
+def _progress(args):
+    """Where a long command's progress lines go: stdout, or nowhere with -q."""
+    return None if args.quiet else (lambda line: print(line, flush=True))
+
+
 def _last_line(e: Exception) -> str:
     """The message of an error raised inside a plugin (Mitsuba wraps it in a traceback, and
     mi.render in a RuntimeError whose cause is the original error)."""
@@ -346,8 +351,7 @@ def _compare(args) -> int:
         raise UsageError(str(e)) from None
     try:
         result = run_compare(settings, args.out,
-                             progress=None if args.quiet else lambda line: print(line,
-                                                                                 flush=True))
+                             progress=_progress(args))
     except (FileNotFoundError, ValueError) as e:
         raise UsageError(_last_line(e)) from None
     if not args.quiet:
@@ -367,15 +371,13 @@ def _int_list(option, text):
 
 
 def _bench(args) -> int:
-    args.list, args.scene, args.command = False, args.scene, "bench"
     _setup(args)
     from .bench import format_bench, run_bench
     sizes = dict(photons=args.photons, resolution=args.resolution, repeats=args.repeats)
     if args.smoke:
         sizes = dict(photons=5000, resolution=(32, 32), repeats=1, big=20_000, huge=100_000,
                      trace_photons_count=20_000, path_spp=2)
-    result = run_bench(args.out, args.scene, progress=None if args.quiet else
-                       lambda line: print(line, flush=True), **sizes)
+    result = run_bench(args.out, args.scene, progress=_progress(args), **sizes)
     print(format_bench(result))
     if args.out:
         print(f"wrote    {args.out}")
@@ -397,15 +399,13 @@ def _hwsim(args) -> int:
 
 
 def _speedup(args) -> int:
-    args.list, args.command = False, "speedup"
     _setup(args)
     from .speedup import format_speedup, run_speedup
     maps = _int_list("--maps", args.maps)
     try:
         result = run_speedup(args.scene, maps, args.out, args.photons, args.resolution,
                              args.spp, args.repeats, args.radius_fraction, args.seed,
-                             args.data, progress=None if args.quiet else
-                             lambda line: print(line, flush=True))
+                             args.data, progress=_progress(args))
     except (FileNotFoundError, ValueError) as e:
         raise UsageError(str(e)) from None
     if not args.quiet:
@@ -421,7 +421,7 @@ def _scaling(args) -> int:
     try:
         rows = run_scaling(args.scene, ranks, args.maps, args.out, args.photons,
                            args.resolution, args.spp, args.repeats, args.data, extra,
-                           progress=None if args.quiet else lambda s: print(s, flush=True))
+                           progress=_progress(args))
     except (FileNotFoundError, ValueError, RuntimeError) as e:
         raise UsageError(str(e)) from None
     if not args.quiet:

@@ -633,8 +633,9 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
             j += 1
     stats = QueryStats(nodes_visited, photons_tested, mi.UInt32(count))
     res = KnnResult(total, r2, count, stats if with_stats else None)
-    found = ([heap_d.read(j) for j in range(k)], [heap_i.read(j) for j in range(k)])
-    return (res, *found) if neighbours else res
+    # The heap's entries are read only when asked for (k lazy variables each otherwise).
+    return (res, [heap_d.read(j) for j in range(k)],
+            [heap_i.read(j) for j in range(k)]) if neighbours else res
 
 
 def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
