@@ -14,13 +14,15 @@ TOML layout (every key optional)::
     outstanding_queries = 4        # queries in flight per PE (hides DRAM latency)
     bytes_per_result = 12          # one partial radiance (RGB float32)
     gather_schedule = "after"      # "after" the queries, or "tiles" overlapped with them
-    tile_queries = 4096            # queries per tile when gather_schedule = "tiles"
+    tile_queries = 4096            # queries per tile: the unit in which a PE overlaps memory
+                                   # with compute, and which the "tiles" gather sends
 
     [memory]
     sram_bytes = 2097152           # local SRAM per PE; a map larger than this lives in DRAM
     dram_bytes_per_cycle = 16      # DRAM bandwidth per PE
     dram_latency_cycles = 100
     dram_burst_bytes = 64
+    dram_channels = 0              # 0: a private channel per PE; k: k channels shared by all PEs
 
     [gather]
     topology = "tree"              # "bus", "tree" or "ring"
@@ -28,13 +30,23 @@ TOML layout (every key optional)::
     hop_latency_cycles = 2
     link_bytes_per_cycle = 8
     adder_latency_cycles = 4
+
+    [energy]                       # picojoules per action; 45 nm figures, assumptions
+    pj_per_node = 11               # read an 8-byte node from SRAM, one compare
+    pj_per_test = 31               # read a 12-byte position, 3 sub, 3 mul, 2 add, 1 compare
+    pj_per_accumulate = 34         # read 16 bytes of power and direction, 3 mul, 3 add
+    pj_per_dram_byte = 160         # a byte moved from DRAM
+    pj_per_link_byte = 1           # a byte over one hop of the gather network
+    pj_per_add = 2.7               # one partial result (3 floats) added in the gather
+    static_watts_per_pe = 0.05     # leakage and clock of one PE while the frame lasts
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields, replace
 
-__all__ = ["MemoryConfig", "GatherConfig", "HardwareConfig", "load_config", "TOPOLOGIES"]
+__all__ = ["MemoryConfig", "GatherConfig", "EnergyConfig", "HardwareConfig", "load_config",
+           "TOPOLOGIES"]
 
 TOPOLOGIES = ("bus", "tree", "ring")
 SCHEDULES = ("after", "tiles")
@@ -59,6 +71,7 @@ class MemoryConfig:
     dram_bytes_per_cycle: float = 16.0
     dram_latency_cycles: float = 100.0
     dram_burst_bytes: int = 64
+    dram_channels: int = 0
 
     def __post_init__(self):
         _check_number("memory", "sram_bytes", self.sram_bytes, 0, low_open=False, integer=True)
@@ -66,6 +79,16 @@ class MemoryConfig:
         _check_number("memory", "dram_latency_cycles", self.dram_latency_cycles, 0,
                       low_open=False)
         _check_number("memory", "dram_burst_bytes", self.dram_burst_bytes, integer=True)
+        _check_number("memory", "dram_channels", self.dram_channels, 0, low_open=False,
+                      integer=True)
+
+    def channels(self, pe_count: int) -> int:
+        """How many DRAM channels ``pe_count`` PEs use (PE p on channel p mod channels)."""
+        return pe_count if self.dram_channels == 0 else min(self.dram_channels, pe_count)
+
+    def contended(self, pe_count: int) -> bool:
+        """Whether some PEs share a DRAM channel."""
+        return self.channels(pe_count) < pe_count
 
 
 @dataclass(frozen=True)
@@ -92,6 +115,25 @@ class GatherConfig:
 
 
 @dataclass(frozen=True)
+class EnergyConfig:
+    """Energy per action in picojoules, and static power per PE. The defaults follow published
+    45 nm figures for float add/multiply, SRAM and DRAM access (Horowitz, ISSCC 2014) summed
+    over what one action does; they are assumptions, as the timing constants are."""
+
+    pj_per_node: float = 11.0
+    pj_per_test: float = 31.0
+    pj_per_accumulate: float = 34.0
+    pj_per_dram_byte: float = 160.0
+    pj_per_link_byte: float = 1.0
+    pj_per_add: float = 2.7
+    static_watts_per_pe: float = 0.05
+
+    def __post_init__(self):
+        for f in fields(self):
+            _check_number("energy", f.name, getattr(self, f.name), 0, low_open=False)
+
+
+@dataclass(frozen=True)
 class HardwareConfig:
     """A PE array: every PE holds whole maps and answers every query on them."""
 
@@ -106,6 +148,7 @@ class HardwareConfig:
     tile_queries: int = 4096
     memory: MemoryConfig = field(default_factory=MemoryConfig)
     gather: GatherConfig = field(default_factory=GatherConfig)
+    energy: EnergyConfig = field(default_factory=EnergyConfig)
 
     def __post_init__(self):
         _check_number("", "pe_count", self.pe_count, 1, low_open=False, integer=True)
@@ -121,8 +164,8 @@ class HardwareConfig:
         _check_number("", "tile_queries", self.tile_queries, 1, low_open=False, integer=True)
 
     def with_(self, **changes) -> "HardwareConfig":
-        """A copy with some fields changed (``memory``/``gather`` fields as dicts)."""
-        for key in ("memory", "gather"):
+        """A copy with some fields changed (``memory``/``gather``/``energy`` fields as dicts)."""
+        for key in ("memory", "gather", "energy"):
             if isinstance(changes.get(key), dict):
                 changes[key] = replace(getattr(self, key), **changes[key])
         return replace(self, **changes)
@@ -147,5 +190,7 @@ def load_config(path=None, **overrides) -> HardwareConfig:
     data.update(overrides)
     memory = _from_dict(MemoryConfig, dict(data.pop("memory", {})), "[memory]")
     gather = _from_dict(GatherConfig, dict(data.pop("gather", {})), "[gather]")
+    energy = _from_dict(EnergyConfig, dict(data.pop("energy", {})), "[energy]")
     top = _from_dict(HardwareConfig, data, "the top level")
-    return HardwareConfig(**top, memory=MemoryConfig(**memory), gather=GatherConfig(**gather))
+    return HardwareConfig(**top, memory=MemoryConfig(**memory), gather=GatherConfig(**gather),
+                          energy=EnergyConfig(**energy))

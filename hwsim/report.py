@@ -4,7 +4,9 @@ For every recorded n the array has one PE per map (the paper's proposal) and the
 simulated with and without the gather; the speedup against n = 1 shows what the gather costs.
 For the largest n, a sweep over PE counts P (maps shared round-robin) and gather topologies
 shows where adding PEs stops paying: the first P from which doubling P shortens the frame by
-less than 5%.
+less than 5%. A second sweep puts every map in DRAM (no SRAM) and lets the PEs share 1 or 4
+DRAM channels, or have one each: the discrete-event model shows where contention for the
+channels, not the gather, ends the scaling.
 """
 from __future__ import annotations
 
@@ -60,11 +62,45 @@ def sensitivity(config, loads, meta, factors=(0.5, 2.0)) -> list:
     return rows
 
 
+#: DRAM channels of the contention sweep: 0 is one private channel per PE.
+CONTENTION_CHANNELS = (0, 4, 1)
+
+
+def _channels_label(channels):
+    return "private" if channels == 0 else f"{channels} shared"
+
+
+def _saturation(points) -> int:
+    """The first PE count from which doubling shortens the frame by less than 5%."""
+    for a, b in zip(points, points[1:]):
+        if b["frame_cycles"] > 0.95 * a["frame_cycles"]:
+            return a["pe_count"]
+    return points[-1]["pe_count"]
+
+
 def _simulate(config, w, meta):
     return simulate(config, w, meta.get("bytes_per_node", 8), meta.get("bytes_per_photon", 28))
 
 
-def run_report(workload_dir, config: HardwareConfig, out_dir) -> dict:
+def calibration(loads, meta, check_dir=None) -> dict:
+    """Fit CPU costs to this workload's measured per-map times (:mod:`hwsim.calibrate`) and
+    check them on itself and, given ``check_dir``, on another scene's workloads."""
+    from .calibrate import check, fit
+    if any(w.map_seconds.size == 0 for w in loads.values()):
+        return {}
+    costs = fit(loads)
+    out = {"fit_on": meta.get("scene", ""), "costs": costs.__dict__,
+           "self": check(costs, loads)}
+    if check_dir is not None:
+        other_meta, other = load_workloads(check_dir)
+        out["other_scene"] = other_meta.get("scene", str(check_dir))
+        out["other"] = check(costs, other)
+    return out
+
+
+def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None) -> dict:
+    """Simulate every recorded n, sweep PEs, topologies, DRAM sharing and the assumed
+    constants, calibrate on the measured times (and check on ``check_dir``); write the files."""
     meta, loads = load_workloads(workload_dir)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -81,6 +117,8 @@ def run_report(workload_dir, config: HardwareConfig, out_dir) -> dict:
                      "load_imbalance": r.load_imbalance, "gather_share": r.gather_share,
                      "utilisation_mean": float(r.utilisation.mean()),
                      "dram_bytes_max": float(r.dram_bytes.max()),
+                     "energy_mj": r.energy_joules * 1e3,
+                     "nj_per_query": r.energy_joules / r.queries * 1e9,
                      "replicated_traversal": (r.nodes_visited / base_nodes
                                               if base_nodes else float("nan"))})
     for row in rows:
@@ -90,7 +128,7 @@ def run_report(workload_dir, config: HardwareConfig, out_dir) -> dict:
 
     n_max = ns[-1]
     sweep = []
-    pes = [p for p in (1, 2, 4, 8, 16, 32, 64, 128, 256) if p <= n_max]
+    pes = [2 ** i for i in range(n_max.bit_length()) if 2 ** i <= n_max]
     if n_max not in pes:
         pes.append(n_max)
     for topology in TOPOLOGIES:
@@ -100,38 +138,50 @@ def run_report(workload_dir, config: HardwareConfig, out_dir) -> dict:
             sweep.append({"topology": topology, "pe_count": p, "frame_cycles": r.frame_cycles,
                           "gather_cycles": r.gather_cycles, "seconds": r.seconds,
                           "gather_share": r.gather_share})
-    saturation = {}
-    for topology in TOPOLOGIES:
-        pts = [s for s in sweep if s["topology"] == topology]
-        sat = pts[-1]["pe_count"]
-        for a, b in zip(pts, pts[1:]):
-            if b["frame_cycles"] > 0.95 * a["frame_cycles"]:
-                sat = a["pe_count"]
-                break
-        saturation[topology] = sat
+    saturation = {t: _saturation([s for s in sweep if s["topology"] == t])
+                  for t in TOPOLOGIES}
+    contention = []
+    for channels in CONTENTION_CHANNELS:
+        for p in pes:
+            cfg = config.with_(pe_count=p, memory={"sram_bytes": 0, "dram_channels": channels})
+            r = _simulate(cfg, loads[n_max], meta)
+            contention.append({"dram_channels": channels, "pe_count": p, "model": r.model,
+                               "frame_cycles": r.frame_cycles, "seconds": r.seconds,
+                               "stall_share": float(r.pe_stall.sum() / (
+                                   r.pe_busy.sum() + r.pe_stall.sum())),
+                               "channel_utilisation": float(
+                                   r.dram_channel_busy.max() / r.compute_cycles)})
+    for c in contention:
+        first = next(x for x in contention if x["dram_channels"] == c["dram_channels"])
+        c["speedup"] = first["frame_cycles"] / c["frame_cycles"]
+    contention_saturation = {
+        _channels_label(ch): _saturation([c for c in contention if c["dram_channels"] == ch])
+        for ch in CONTENTION_CHANNELS}
     detail = _simulate(config.with_(pe_count=n_max), loads[n_max], meta)
     sens = sensitivity(config, loads, meta)
     result = {"config": asdict(config), "workload": {k: meta[k] for k in (
         "scene", "queries", "radius", "photons_stored") if k in meta},
         "rows": rows, "sweep": sweep, "saturation_pe_count": saturation,
-        "sensitivity": sens,
+        "contention": contention, "contention_saturation_pe_count": contention_saturation,
+        "sensitivity": sens, "calibration": calibration(loads, meta, check_dir),
         "largest_n": detail.as_dict()}
     (out / "report.json").write_text(json.dumps(result, indent=2) + "\n")
-    for name, data in (("report.csv", rows), ("sweep.csv", sweep), ("sensitivity.csv", sens)):
+    for name, data in (("report.csv", rows), ("sweep.csv", sweep), ("sensitivity.csv", sens),
+                       ("contention.csv", contention)):
         with open(out / name, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=list(data[0]))
             writer.writeheader()
             writer.writerows(data)
-    _plots(rows, sweep, detail, out, meta.get("scene", ""))
+    _plots(rows, sweep, contention, detail, out, meta.get("scene", ""))
     return result
 
 
-def _plots(rows, sweep, detail, out, scene):
+def _plots(rows, sweep, contention, detail, out, scene):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     n = [r["n"] for r in rows]
-    fig, ax = plt.subplots(1, 3, figsize=(14, 4))
+    fig, ax = plt.subplots(1, 4, figsize=(18, 4))
     ax[0].plot(n, n, "k--", label="ideal")
     ax[0].plot(n, [r["speedup_without_gather"] for r in rows], "s:", label="without gather")
     ax[0].plot(n, [r["speedup"] for r in rows], "o-", label="with gather")
@@ -155,6 +205,16 @@ def _plots(rows, sweep, detail, out, scene):
     ax[2].set_ylabel("frame time (ms)")
     ax[2].set_title(f"n = {detail.map_count}: PE count and gather topology", fontsize=10)
     ax[2].legend(fontsize=8)
+    for ch in CONTENTION_CHANNELS:
+        pts = [c for c in contention if c["dram_channels"] == ch]
+        ax[3].plot([c["pe_count"] for c in pts], [c["speedup"] for c in pts], "o-",
+                   label=f"DRAM: {_channels_label(ch)}")
+    ax[3].set_xscale("log", base=2)
+    ax[3].set_yscale("log", base=2)
+    ax[3].set_xlabel("PEs P")
+    ax[3].set_ylabel("speedup vs P = 1")
+    ax[3].set_title(f"n = {detail.map_count}, every map in DRAM: contention", fontsize=10)
+    ax[3].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "hwsim.png", dpi=110)
     plt.close(fig)
@@ -162,17 +222,41 @@ def _plots(rows, sweep, detail, out, scene):
 
 def format_report(result) -> str:
     lines = [f"{'n=PEs':>5} {'frame ms':>9} {'fps':>8} {'speedup':>8} {'w/o gather':>10} "
-             f"{'gather %':>8} {'imbalance':>9} {'util':>5} {'DRAM MB':>8} {'nodes x':>7}"]
+             f"{'gather %':>8} {'imbalance':>9} {'util':>5} {'DRAM MB':>8} {'nodes x':>7} "
+             f"{'mJ':>8} {'nJ/query':>8}"]
     for r in result["rows"]:
         lines.append(f"{r['n']:5d} {r['seconds'] * 1e3:9.2f} {r['frames_per_second']:8.2f} "
                      f"{r['speedup']:8.2f} {r['speedup_without_gather']:10.2f} "
                      f"{r['gather_share'] * 100:8.2f} {r['load_imbalance']:9.3f} "
                      f"{r['utilisation_mean']:5.2f} {r['dram_bytes_max'] / 1e6:8.1f} "
-                     f"{r['replicated_traversal']:7.2f}")
+                     f"{r['replicated_traversal']:7.2f} {r['energy_mj']:8.3f} "
+                     f"{r['nj_per_query']:8.1f}")
     n = result["largest_n"]["map_count"]
     parts = [f"{k}: P = {v}" if v < n else f"{k}: still paying at P = {v} = n"
              for k, v in result["saturation_pe_count"].items()]
     lines.append(f"where doubling the PEs gains under 5% (n = {n}): {'; '.join(parts)}")
+    if result.get("contention"):
+        parts = []
+        for label, p in result["contention_saturation_pe_count"].items():
+            best = max((c for c in result["contention"]
+                        if _channels_label(c["dram_channels"]) == label),
+                       key=lambda c: c["speedup"])
+            where = f"saturates at P = {p}" if p < n else f"still paying at P = {p} = n"
+            parts.append(f"{label}: {where} (best speedup {best['speedup']:.1f} at "
+                         f"P = {best['pe_count']})")
+        lines.append(f"every map in DRAM (n = {n}), DRAM channels {'; '.join(parts)}")
+    cal = result.get("calibration")
+    if cal:
+        c = cal["costs"]
+        text = (f"calibration on {cal['fit_on']}'s measured per-map times: "
+                f"{c['per_node'] * 1e9:.2f} ns/node, {c['per_test'] * 1e9:.2f} ns/test, "
+                f"{c['per_found'] * 1e9:.2f} ns/found, {c['fixed'] * 1e3:.2f} ms/map; "
+                f"R^2 {cal['self']['r2']:.3f} (largest error "
+                f"{cal['self']['max_rel_error'] * 100:.0f}%)")
+        if "other" in cal:
+            text += (f"; predicts {cal['other_scene']} with R^2 {cal['other']['r2']:.3f} "
+                     f"(largest error {cal['other']['max_rel_error'] * 100:.0f}%)")
+        lines.append(text)
     sens = result.get("sensitivity", [])
     if sens:
         speeds = [r["speedup"] for r in sens]

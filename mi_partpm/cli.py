@@ -158,6 +158,9 @@ def _parser() -> argparse.ArgumentParser:
     h = sub.add_parser("hwsim", help="simulate a PE array on the workloads of 'partpm speedup'")
     h.add_argument("workloads", help="a workloads/ directory written by 'partpm speedup'")
     h.add_argument("--config", help="hardware configuration (TOML; see hwsim/config.py)")
+    h.add_argument("--check", metavar="WORKLOAD_DIR",
+                   help="another scene's workloads: predict its measured per-map times with "
+                        "the costs calibrated on WORKLOAD_DIR")
     h.add_argument("--out", required=True, help="output directory (JSON, CSV, plots)")
     h.add_argument("-q", "--quiet", action="store_true", help="print only errors")
 
@@ -169,6 +172,9 @@ def _parser() -> argparse.ArgumentParser:
     _size_options(m, spp=4, repeats=3, repeats_help="runs per P")
     m.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
     m.add_argument("--hostfile", help="MPI hostfile, passed to mpiexec -f (clusters)")
+    m.add_argument("--bench-repeats", type=_positive_int("--bench-repeats"), default=15,
+                   help="timed reductions per message size in the micro-benchmark that fits "
+                        "the alpha-beta model (default 15)")
     m.add_argument("--out", required=True, help="output directory (CSV, JSON, images)")
     m.add_argument("-q", "--quiet", action="store_true", help="print only errors")
     return parser
@@ -389,12 +395,13 @@ def _hwsim(args) -> int:
     from hwsim.report import format_report, run_report
     try:
         config = load_config(args.config)
-        result = run_report(args.workloads, config, args.out)
+        result = run_report(args.workloads, config, args.out, args.check)
     except (OSError, ValueError) as e:
         raise UsageError(str(e)) from None
     if not args.quiet:
         print(format_report(result))
-        print(f"wrote    {args.out}/report.json, report.csv, sweep.csv, hwsim.png")
+        print(f"wrote    {args.out}/report.json, report.csv, sweep.csv, contention.csv, "
+              f"sensitivity.csv, hwsim.png")
     return 0
 
 
@@ -421,12 +428,12 @@ def _scaling(args) -> int:
     try:
         rows = run_scaling(args.scene, ranks, args.maps, args.out, args.photons,
                            args.resolution, args.spp, args.repeats, args.data, extra,
-                           progress=_progress(args))
+                           progress=_progress(args), bench_repeats=args.bench_repeats)
     except (FileNotFoundError, ValueError, RuntimeError) as e:
         raise UsageError(str(e)) from None
     if not args.quiet:
         print(format_scaling(rows))
-        print(f"wrote    {args.out}/scaling.csv and scaling.json")
+        print(f"wrote    {args.out}/scaling.csv, scaling.json and collective.json")
     return 0
 
 

@@ -4,6 +4,12 @@
 each P (with the ``mpiexec`` beside the running Python, i.e. the venv's, else the one on PATH),
 reads the figures each run writes with ``--stats-json`` and tabulates time, speedup and
 efficiency per P, and the gather's share. Every image is compared with the P = 1 image.
+
+It then runs the reduction micro-benchmark (:mod:`mi_partpm.reducebench`) on each P, fits its
+two-regime alpha-beta lines (:mod:`hwsim.collective`) and predicts each P's render time as the
+slowest rank's trace + build + estimate plus the fitted reduction of the image: the check of
+the communication model against the backend it models. ``collective.json`` holds the
+measurements, the fits and the reduction extrapolated to larger P on this transport.
 """
 from __future__ import annotations
 
@@ -40,7 +46,7 @@ def _median(values):
 def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: int = 100_000,
                 resolution=(480, 480), spp: int = 4, repeats: int = 3,
                 data_dir: Optional[str] = None, mpiexec_args: Sequence[str] = (),
-                progress=print, timeout: float = 3600) -> list:
+                progress=print, timeout: float = 3600, bench_repeats: int = 15) -> list:
     """Render ``scene`` on each P in ``ranks`` ``repeats`` times; return one row per P.
 
     Each row holds the medians over the repeats of: the render time (trace, build, estimate
@@ -80,25 +86,65 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
         diff = float(np.max(np.abs(image - first_image) / np.maximum(np.abs(first_image), 1e-3)))
         slowest = {ph: _median([max(r[f"time_{ph}"] for r in run["ranks"]) for run in runs])
                    for ph in ("trace", "build", "estimate")}
+        compute = _median([max(r["time_trace"] + r["time_build"] + r["time_estimate"]
+                               for r in run["ranks"]) for run in runs])
         rows.append({
             "ranks": p, "maps": maps, "time_render": _median([r["time_render"] for r in runs]),
             **{f"time_{k}_max": v for k, v in slowest.items()},
             "time_reduce": _median([run["ranks"][0]["time_reduce"] for run in runs]),
             "reduce_bytes_per_rank": runs[0]["ranks"][0]["reduce_bytes"],
             "tree_bytes_max": max(r["map_bytes"] for r in runs[0]["ranks"]),
-            "max_rel_diff_vs_first": diff, "repeats": repeats,
+            "max_rel_diff_vs_first": diff, "repeats": repeats, "time_compute_max": compute,
         })
     base = rows[0]
     for row in rows:
         row["speedup"] = base["time_render"] / row["time_render"]
         row["efficiency"] = row["speedup"] * base["ranks"] / row["ranks"]
         row["reduce_share"] = row["time_reduce"] / row["time_render"]
+    if bench_repeats > 0:
+        _predict(rows, out, mpiexec_args, bench_repeats, say, timeout)
     with open(out / "scaling.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
     (out / "scaling.json").write_text(json.dumps(rows, indent=2) + "\n")
     return rows
+
+
+#: P of the extrapolated reduction times in collective.json.
+EXTRAPOLATE_RANKS = (2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
+
+
+def _predict(rows, out, mpiexec_args, repeats, say, timeout):
+    """Micro-benchmark the reduction on every P in both conditions, fit it, and predict each
+    row's reduction (transport alone and in situ) and render time (transport)."""
+    from hwsim.collective import fit_collective, fit_regimes
+    from .reducebench import CONDITIONS, run_reduce_bench
+    info = {}
+    for condition in CONDITIONS:
+        benches, fits = {}, {}
+        for row in rows:
+            p = row["ranks"]
+            say(f"P = {p}: reduction micro-benchmark ({condition}) ...")
+            benches[p] = run_reduce_bench(p, out / f"reducebench_{condition}_P{p}.json",
+                                          repeats, mpiexec_args, timeout, condition)
+            fits[p] = fit_regimes(benches[p]["sizes"], benches[p]["reduce"])
+            row[f"time_reduce_pred_{condition}"] = fits[p](row["reduce_bytes_per_rank"])
+        entry = {"benchmarks": benches, "reduce_fits": {p: f.as_dict() for p, f in fits.items()}}
+        multi = [p for p in benches if p >= 2]
+        if multi:
+            model = fit_collective(benches[max(multi)])
+            nbytes = rows[0]["reduce_bytes_per_rank"]
+            alpha, beta, gamma = model.alpha_beta_gamma(nbytes)
+            entry["collective"] = model.as_dict()
+            entry["image"] = {"bytes": nbytes, "alpha": alpha, "beta": beta, "gamma": gamma,
+                              "reduce_seconds": {q: model.reduce_seconds(q, nbytes)
+                                                 for q in EXTRAPOLATE_RANKS}}
+        info[condition] = entry
+    for row in rows:
+        row["time_render_pred"] = row["time_compute_max"] + row["time_reduce_pred_transport"]
+        row["render_pred_rel_error"] = row["time_render_pred"] / row["time_render"] - 1.0
+    (out / "collective.json").write_text(json.dumps(info, indent=2) + "\n")
 
 
 def _read_exr(path) -> np.ndarray:
@@ -118,4 +164,15 @@ def format_scaling(rows) -> str:
                      f"{r['max_rel_diff_vs_first']:12.2e}")
     lines.append("times: medians over repeats; trace/build/estimate: the slowest rank; "
                  "speedup and efficiency against the first P")
+    if "time_render_pred" in rows[0]:
+        lines.append("predicted from the reduction micro-benchmark's alpha-beta fits "
+                     "(transport alone; in situ, beside Dr.Jit's thread pool):")
+        lines.append(f"{'P':>3} {'reduce ms':>9} {'transport':>9} {'in situ':>9} "
+                     f"{'render s':>9} {'predicted':>9} {'error':>7}")
+        for r in rows:
+            lines.append(f"{r['ranks']:3d} {r['time_reduce'] * 1e3:9.2f} "
+                         f"{r['time_reduce_pred_transport'] * 1e3:9.2f} "
+                         f"{r['time_reduce_pred_in_situ'] * 1e3:9.2f} {r['time_render']:9.2f} "
+                         f"{r['time_render_pred']:9.2f} "
+                         f"{r['render_pred_rel_error'] * 100:+6.2f}%")
     return "\n".join(lines)

@@ -128,7 +128,7 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
             "gather_max_rel_error": gather_error,
         }
         rows.append(row)
-        say(f"n = {n:2d}: one map {per_map * 1e3:8.1f} ms, all {n} maps "
+        say(f"n = {n:4d}: one map {per_map * 1e3:8.1f} ms, all {n} maps "
             f"{row['total_seconds']:6.2f} s; per query: {row['mean_nodes_visited']:.1f} nodes, "
             f"{row['mean_photons_tested']:.1f} tested, {row['mean_photons_found']:.1f} found")
         if save_workloads:
@@ -203,10 +203,10 @@ def format_speedup(result) -> str:
     lines = [f"{result['scene']}: {result['photons_emitted']} photons emitted, "
              f"{result['photons_stored']} stored, {result['queries']} hit points, "
              f"r = {result['radius']:.4g}",
-             f"{'n':>3} {'one map ms':>10} {'speedup':>8} {'all maps s':>10} {'nodes':>7} "
+             f"{'n':>4} {'one map ms':>10} {'speedup':>8} {'all maps s':>10} {'nodes':>7} "
              f"{'tested':>7} {'found':>7} {'depth':>5} {'gather err':>10}"]
     for r in result["rows"]:
-        lines.append(f"{r['n']:3d} {r['per_map_seconds'] * 1e3:10.1f} {r['speedup']:8.2f} "
+        lines.append(f"{r['n']:4d} {r['per_map_seconds'] * 1e3:10.1f} {r['speedup']:8.2f} "
                      f"{r['total_seconds']:10.2f} {r['mean_nodes_visited']:7.1f} "
                      f"{r['mean_photons_tested']:7.1f} {r['mean_photons_found']:7.1f} "
                      f"{r['tree_depth']:5d} {r['gather_max_rel_error']:10.1e}")

@@ -90,6 +90,89 @@ def test_more_pes_never_slow_the_frame_unless_the_gather_grows():
             b.gather_cycles - a.gather_cycles >= b.frame_cycles - a.frame_cycles
 
 
+def _random_workload(seed, n=8, q=300, map_bytes=None):
+    rng = np.random.default_rng(seed)
+    return workload(rng.integers(5, 50, (n, q)), rng.integers(0, 100, (n, q)),
+                    rng.integers(0, 30, (n, q)),
+                    map_bytes=map_bytes if map_bytes is not None else
+                    rng.integers(100, 5000, n).tolist())
+
+
+@pytest.mark.parametrize("topology", ["bus", "tree", "ring"])
+@pytest.mark.parametrize("schedule", ["after", "tiles"])
+@pytest.mark.parametrize("pes", [1, 3, 8])
+def test_event_model_agrees_with_the_analytic_one_without_contention(topology, schedule, pes):
+    """Private DRAM channels: the discrete-event model must give the analytic frame exactly,
+    with maps in SRAM and maps in DRAM (SRAM 2500 bytes: about half the maps spill)."""
+    cfg = BASE.with_(pe_count=pes, gather_schedule=schedule, tile_queries=37,
+                     outstanding_queries=2, gather={"topology": topology},
+                     memory={"sram_bytes": 2500, "dram_bytes_per_cycle": 2,
+                             "dram_latency_cycles": 30})
+    w = _random_workload(pes)
+    assert 0 < np.sum(w.map_bytes > 2500) < w.n
+    a = simulate(cfg, w, model="analytic")
+    e = simulate(cfg, w, model="events")
+    assert (a.model, e.model) == ("analytic", "events")
+    assert e.frame_cycles == a.frame_cycles and e.compute_cycles == a.compute_cycles
+    np.testing.assert_array_equal(e.pe_busy, a.pe_busy)
+    np.testing.assert_allclose(e.pe_stall, a.pe_stall, rtol=1e-12, atol=1e-6)
+    np.testing.assert_allclose(e.dram_channel_busy, a.dram_channel_busy, rtol=1e-12)
+    assert a.pe_stall.sum() > 0
+
+
+def test_two_pes_sharing_one_dram_channel_by_hand():
+    cfg = BASE.with_(pe_count=2, outstanding_queries=2,
+                     memory={"sram_bytes": 500, "dram_bytes_per_cycle": 1,
+                             "dram_latency_cycles": 10, "dram_burst_bytes": 64},
+                     gather={"topology": "bus", "link_bytes_per_cycle": 12,
+                             "hop_latency_cycles": 0, "adder_latency_cycles": 0})
+    # Each map: 1 query of (2 nodes, 4 tested, 1 found), 1000 bytes, so in DRAM: compute 22,
+    # 128 bytes = 128 cycles of transfer, latency 10. Gather on the bus: 2 x 12 / 12 = 2.
+    w = workload([[2], [2]], [[4], [4]], [[1], [1]], map_bytes=[1000, 1000])
+    private = simulate(cfg, w)
+    assert private.model == "analytic" and private.frame_cycles == 128 + 2
+    # One channel: PE 0 is served in [0, 128], PE 1 queues and is served in [128, 256].
+    shared = simulate(cfg.with_(memory={"dram_channels": 1}), w)
+    assert shared.model == "events" and shared.frame_cycles == 256 + 2
+    assert shared.pe_stall.tolist() == [128 - 22, 256 - 22]
+    assert shared.dram_channel_busy.tolist() == [256]
+    with pytest.raises(ValueError, match="analytic model has no DRAM contention"):
+        simulate(cfg.with_(memory={"dram_channels": 1}), w, model="analytic")
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3])
+def test_sharing_dram_channels_only_slows_and_is_bandwidth_bound(channels):
+    cfg = BASE.with_(pe_count=6, tile_queries=25,
+                     memory={"sram_bytes": 0, "dram_bytes_per_cycle": 4})
+    w = _random_workload(11, n=6, q=200)
+    private = simulate(cfg, w)
+    shared = simulate(cfg.with_(memory={"dram_channels": channels}), w)
+    assert shared.compute_cycles >= private.compute_cycles
+    # No channel transfers more than the frame lasts, and the busiest one bounds the frame.
+    assert shared.dram_channel_busy.size == channels
+    assert shared.dram_channel_busy.max() <= shared.compute_cycles
+    assert shared.dram_channel_busy.sum() == pytest.approx(private.dram_channel_busy.sum())
+
+
+def test_energy_by_hand():
+    cfg = BASE.with_(pe_count=2, energy={"pj_per_node": 1, "pj_per_test": 2,
+                                         "pj_per_accumulate": 3, "pj_per_dram_byte": 0,
+                                         "pj_per_link_byte": 0.5, "pj_per_add": 4,
+                                         "static_watts_per_pe": 0.01},
+                     gather={"topology": "tree", "link_bytes_per_cycle": 12,
+                             "hop_latency_cycles": 0, "adder_latency_cycles": 0})
+    w = workload([[10, 6], [4, 4]], [[20, 8], [2, 2]], [[5, 2], [1, 1]])
+    r = simulate(cfg, w)
+    # Dynamic: 24 nodes x 1 + 32 tests x 2 + 9 found x 3 = 115 pJ; gather: one PE sends
+    # 2 results x 12 bytes over one link (12 pJ) and 2 results are added (8 pJ).
+    assert r.energy["nodes"] + r.energy["tests"] + r.energy["accumulates"] == \
+        pytest.approx(115e-12)
+    assert r.energy["gather"] == pytest.approx(20e-12)
+    # Static: 2 PEs x 10 mW over the frame: 162 compute + 2 gather cycles at 100 Hz.
+    assert r.frame_cycles == 164 and r.energy["static"] == pytest.approx(2 * 0.01 * 1.64)
+    assert r.energy_joules == pytest.approx(sum(r.energy.values()))
+
+
 @pytest.mark.parametrize("changes, message", [
     ({"pe_count": 0}, r"pe_count must be an integer >= 1, got 0"),
     ({"clock_hz": -1}, r"clock_hz must be a finite number > 0, got -1"),
@@ -97,6 +180,8 @@ def test_more_pes_never_slow_the_frame_unless_the_gather_grows():
     ({"gather": {"topology": "mesh"}}, r"gather.topology must be one of bus, tree, ring"),
     ({"memory": {"dram_bytes_per_cycle": 0}}, r"memory.dram_bytes_per_cycle must be"),
     ({"cycles_per_node": float("nan")}, r"cycles_per_node must be a finite number"),
+    ({"memory": {"dram_channels": -1}}, r"memory.dram_channels must be an integer >= 0"),
+    ({"energy": {"pj_per_node": -1}}, r"energy.pj_per_node must be a finite number >= 0"),
 ])
 def test_invalid_configs_name_the_field(changes, message):
     with pytest.raises(ValueError, match=message):
@@ -159,12 +244,27 @@ def test_report_on_a_seeded_workload_matches_the_golden_report(tmp_path):
         for k in keep:
             assert g[k] == pytest.approx(w[k], rel=1e-9), (g["n"], k)
     assert (tmp_path / "out" / "hwsim.png").stat().st_size > 1000
+    # Every map in DRAM: sharing channels uses the event model and never beats private ones.
+    cont = {(c["dram_channels"], c["pe_count"]): c for c in result["contention"]}
+    assert cont[(1, 8)]["model"] == "events" and cont[(0, 8)]["model"] == "analytic"
+    for (channels, p), c in cont.items():
+        assert c["frame_cycles"] >= cont[(0, p)]["frame_cycles"] * (1 - 1e-12)
+    # The synthetic times follow known costs exactly: the calibration explains them.
+    assert result["calibration"]["self"]["r2"] > 0.999
 
 
 def test_hwsim_cli(tmp_path, capsys):
     from mi_partpm.cli import main
     assert main(["hwsim", str(_synthetic_dir(tmp_path)), "--out", str(tmp_path / "r")]) == 0
     assert "w/o gather" in capsys.readouterr().out
+    # --check: costs fitted on one workload predict another's measured times.
+    from hwsim.calibrate import synthetic_workloads
+    from hwsim.workload import save_workloads
+    other = save_workloads(tmp_path / "other", synthetic_workloads(seed=8, queries=200),
+                           scene="synthetic seed 8")
+    assert main(["hwsim", str(tmp_path / "workloads"), "--check", str(other), "--out",
+                 str(tmp_path / "r2")]) == 0
+    assert "predicts synthetic seed 8 with R^2 1.000" in capsys.readouterr().out
     cfg = tmp_path / "bad.toml"
     cfg.write_text('[gather]\ntopology = "mesh"\n')
     assert main(["hwsim", str(tmp_path / "workloads"), "--config", str(cfg), "--out",
@@ -175,8 +275,33 @@ def test_hwsim_cli(tmp_path, capsys):
 def test_hwsim_never_imports_mitsuba():
     import subprocess
     import sys
-    code = ("import sys, hwsim.config, hwsim.model, hwsim.report, hwsim.calibrate, "
+    code = ("import sys, hwsim.config, hwsim.model, hwsim.events, hwsim.collective, "
+            "hwsim.report, hwsim.calibrate, "
             "hwsim.workload; bad = [m for m in ('mitsuba', 'drjit', 'mi_partpm') "
             "if m in sys.modules]; print(bad); sys.exit(1 if bad else 0)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_collective_fit_recovers_two_regimes_and_scales_with_tree_steps():
+    from hwsim.collective import fit_collective, fit_line, tree_steps
+    sizes = [4 ** i for i in range(1, 13)]
+    # Short messages: 5 us + 0.2 ns/B; from 64 KiB on: 1 ns/B (ping-pong); the reduction
+    # adds 0.5 ns/B of summing on top (gamma) in both regimes, and 2 us of start-up.
+    def pingpong(m):
+        return 5e-6 + 2e-10 * m if m < 65536 else 1e-9 * m
+    bench = {"ranks": 2, "sizes": sizes, "pingpong": [pingpong(m) for m in sizes],
+             "reduce": [pingpong(m) + 2e-6 * (m < 65536) + 5e-10 * m for m in sizes]}
+    c = fit_collective(bench)
+    assert c.pingpong.split == 65536 and c.reduce.split == 65536
+    assert c.alpha_beta_gamma(100) == pytest.approx((5e-6, 2e-10, 5e-10), rel=1e-6)
+    assert c.alpha_beta_gamma(1 << 20) == pytest.approx((0.0, 1e-9, 5e-10), rel=1e-6,
+                                                        abs=1e-12)
+    m = 2_764_800
+    assert c.reduce_seconds(2, m) == pytest.approx(1.5e-9 * m, rel=1e-6)
+    assert c.reduce_seconds(1024, m) == pytest.approx(10 * 1.5e-9 * m, rel=1e-6)
+    assert [tree_steps(p) for p in (1, 2, 3, 4, 5, 8, 9)] == [0, 1, 2, 2, 3, 3, 4]
+    with pytest.raises(ValueError, match="need >= 2 sizes with positive times"):
+        fit_line([1], [1.0])
+    with pytest.raises(ValueError, match="need a micro-benchmark on >= 2 ranks"):
+        fit_collective({**bench, "ranks": 1})
