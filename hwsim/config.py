@@ -19,7 +19,7 @@ TOML layout (every key optional)::
 
     [memory]
     sram_bytes = 2097152           # local SRAM per PE; a map larger than this lives in DRAM
-    dram_bytes_per_cycle = 16      # DRAM bandwidth per PE
+    dram_bytes_per_cycle = 16      # DRAM bandwidth per channel
     dram_latency_cycles = 100
     dram_burst_bytes = 64
     dram_channels = 0              # 0: a private channel per PE; k: k channels shared by all PEs

@@ -138,6 +138,10 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None) ->
             sweep.append({"topology": topology, "pe_count": p, "frame_cycles": r.frame_cycles,
                           "gather_cycles": r.gather_cycles, "seconds": r.seconds,
                           "gather_share": r.gather_share})
+    for row in sweep:
+        first = next(x for x in sweep if x["topology"] == row["topology"])
+        row["speedup"] = first["frame_cycles"] / row["frame_cycles"]
+        row["efficiency"] = row["speedup"] * first["pe_count"] / row["pe_count"]
     saturation = {t: _saturation([s for s in sweep if s["topology"] == t])
                   for t in TOPOLOGIES}
     contention = []
@@ -232,6 +236,13 @@ def format_report(result) -> str:
                      f"{r['replicated_traversal']:7.2f} {r['energy_mj']:8.3f} "
                      f"{r['nj_per_query']:8.1f}")
     n = result["largest_n"]["map_count"]
+    lines.append(f"n = {n} maps on P PEs: frame ms (speedup vs P = 1) per gather topology")
+    lines.append(f"{'P':>5} " + " ".join(f"{t:>16}" for t in TOPOLOGIES))
+    by = {(s["topology"], s["pe_count"]): s for s in result["sweep"]}
+    for p in sorted({s["pe_count"] for s in result["sweep"]}):
+        lines.append(f"{p:5d} " + " ".join(
+            f"{by[t, p]['seconds'] * 1e3:8.1f} ({by[t, p]['speedup']:5.1f}x)".rjust(16)
+            for t in TOPOLOGIES))
     parts = [f"{k}: P = {v}" if v < n else f"{k}: still paying at P = {v} = n"
              for k, v in result["saturation_pe_count"].items()]
     lines.append(f"where doubling the PEs gains under 5% (n = {n}): {'; '.join(parts)}")

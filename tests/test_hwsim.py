@@ -200,6 +200,13 @@ def test_config_from_toml(tmp_path):
         simulate(BASE.with_(pe_count=4), workload([[1], [1]], [[1], [1]], [[1], [1]]))
 
 
+def test_the_shipped_default_toml_spells_out_the_defaults():
+    from pathlib import Path
+    import hwsim
+    path = Path(hwsim.__file__).parent / "default.toml"
+    assert load_config(path) == HardwareConfig()
+
+
 def test_calibration_recovers_known_costs_and_predicts_another_workload():
     from hwsim.calibrate import check, fit, synthetic_workloads
     truth = (2e-8, 1e-8, 5e-9, 1e-4)
