@@ -1,0 +1,121 @@
+"""What the notebooks in ``notebooks/`` share: the size they run at, where results go, and the
+reuse of a finished run.
+
+Each notebook runs an experiment of the paper at one of two sizes, from the environment
+variable ``PARTPM_NOTEBOOK_SIZE``:
+
+- ``paper`` (default): the paper's settings, the same as the CLI's defaults;
+- ``smoke``: tiny images and photon counts, so that the test suite can execute every notebook.
+
+Results go to ``$PARTPM_NOTEBOOK_OUT`` (default ``../out``, beside the notebooks, which is where
+the CLI examples of the README write). A finished run whose recorded settings equal the ones
+asked for is read back instead of being run again: delete its directory to recompute.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict
+from pathlib import Path
+
+__all__ = ["SIZES", "size", "out_dir", "compare", "speedup", "hwsim_report", "show"]
+
+SIZES = {
+    "paper": {"compare": {"resolution": (480, 480), "spp": 4, "photons": 100_000, "maps": 8,
+                          "reference_spp": 2048},
+              "speedup": {"maps": (1, 2, 4, 8, 16, 32), "resolution": (480, 480), "spp": 1,
+                          "photons": 100_000, "repeats": 3}},
+    "smoke": {"compare": {"resolution": (24, 24), "spp": 1, "photons": 10_000, "maps": 4,
+                          "reference_spp": 16},
+              "speedup": {"maps": (1, 2, 4), "resolution": (24, 24), "spp": 1,
+                          "photons": 10_000, "repeats": 1}},
+}
+
+
+def size() -> str:
+    """The size the notebooks run at (``PARTPM_NOTEBOOK_SIZE``: paper or smoke)."""
+    value = os.environ.get("PARTPM_NOTEBOOK_SIZE", "paper")
+    if value not in SIZES:
+        raise ValueError(f"PARTPM_NOTEBOOK_SIZE must be one of {', '.join(SIZES)}, got "
+                         f"{value!r}")
+    return value
+
+
+def out_dir(name: str) -> Path:
+    """Where the run ``name`` lives: ``$PARTPM_NOTEBOOK_OUT/name`` (``smoke/name`` at the smoke
+    size, so that a smoke run never replaces a paper-size one)."""
+    base = Path(os.environ.get("PARTPM_NOTEBOOK_OUT", "../out"))
+    return base / name if size() == "paper" else base / "smoke" / name
+
+
+def _same(recorded: dict, wanted: dict) -> bool:
+    return all(json.loads(json.dumps(recorded.get(k))) == json.loads(json.dumps(v))
+               for k, v in wanted.items())
+
+
+def compare(scene: str, progress=print) -> dict:
+    """pm vs partpm vs path on ``scene`` (``metrics.json`` of :func:`run_compare`)."""
+    from .compare import CompareSettings, run_compare
+    settings = CompareSettings(scene=scene, **SIZES[size()]["compare"])
+    out = out_dir(f"compare_{scene}")
+    done = out / "metrics.json"
+    wanted = {k: v for k, v in asdict(settings).items() if k not in ("k", "data_dir")}
+    if done.is_file():
+        result = json.loads(done.read_text())
+        if _same(result["settings"], wanted):
+            progress(f"{scene}: reusing {done}")
+            result["out"] = str(out)
+            return result
+    result = run_compare(settings, out, progress=progress)
+    result["out"] = str(out)
+    return result
+
+
+def speedup(scene: str, progress=print) -> dict:
+    """The speedup experiment on ``scene`` (``speedup.json`` of :func:`run_speedup`)."""
+    from .speedup import run_speedup
+    s = SIZES[size()]["speedup"]
+    out = out_dir(f"speedup_{scene}")
+    done = out / "speedup.json"
+    if done.is_file() and (out / "workloads" / "meta.json").is_file():
+        result = json.loads(done.read_text())
+        if _same(result, {"photons_emitted": s["photons"], "resolution": s["resolution"],
+                          "spp": s["spp"], "repeats": s["repeats"]}) and \
+                [r["n"] for r in result["rows"]] == list(s["maps"]):
+            progress(f"{scene}: reusing {done}")
+            result["out"] = str(out)
+            return result
+    result = run_speedup(scene, s["maps"], out, photons=s["photons"],
+                         resolution=s["resolution"], spp=s["spp"], repeats=s["repeats"],
+                         progress=progress)
+    result["out"] = str(out)
+    return result
+
+
+def hwsim_report(scene: str, config=None, check_scene: str | None = None) -> dict:
+    """hwsim's report on the workloads of :func:`speedup` for ``scene`` (rerun every time: it
+    takes seconds), optionally checking its calibration on ``check_scene``'s workloads."""
+    from hwsim.config import HardwareConfig
+    from hwsim.report import run_report
+    workloads = out_dir(f"speedup_{scene}") / "workloads"
+    check = out_dir(f"speedup_{check_scene}") / "workloads" if check_scene else None
+    out = out_dir(f"hwsim_{scene}")
+    result = run_report(workloads, config or HardwareConfig(), out, check)
+    result["out"] = str(out)
+    return result
+
+
+def show(path, width: int | None = None, max_png_bytes: int = 300_000):
+    """Display an image file in the notebook. A PNG larger than ``max_png_bytes`` (a rendered
+    image, not a plot) is shown as a JPEG of quality 90, to keep the saved notebook small."""
+    import io
+
+    from IPython.display import Image, display
+    path = Path(path)
+    if path.suffix.lower() == ".png" and path.stat().st_size > max_png_bytes:
+        from PIL import Image as PILImage
+        buffer = io.BytesIO()
+        PILImage.open(path).convert("RGB").save(buffer, format="JPEG", quality=90)
+        display(Image(data=buffer.getvalue(), format="jpeg", width=width))
+        return
+    display(Image(filename=str(path), width=width))
