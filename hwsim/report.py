@@ -2,9 +2,9 @@
 
 For every recorded n the array has one PE per map (the paper's proposal) and the frame is
 simulated with and without the gather; the speedup against n = 1 shows what the gather costs.
-For the largest n, a sweep over PE counts P (maps shared round-robin) and gather topologies
-shows where adding PEs stops paying: the first P from which doubling P shortens the frame by
-less than 5%. A second sweep puts every map in DRAM (no SRAM) and lets the PEs share 1 or 4
+For the largest n, a sweep over PE counts P (maps shared round-robin) and gather networks
+(a bus; trees and rings, pipelined and store-and-forward) shows where adding PEs stops paying:
+the first P from which doubling P shortens the frame by less than 5%. A second sweep puts every map in DRAM (no SRAM) and lets the PEs share 1 or 4
 DRAM channels, or have one each: the discrete-event model shows where contention for the
 channels, not the gather, ends the scaling.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import TOPOLOGIES, HardwareConfig
+from .config import HardwareConfig
 from .model import simulate
 from .workload import load_workloads
 
@@ -61,6 +61,10 @@ def sensitivity(config, loads, meta, factors=(0.5, 2.0)) -> list:
             rows.append({"constant": name, "factor": f, "speedup": sp, "gather_share": sh})
     return rows
 
+
+#: The gather networks of the sweep: (label, topology, pipelined). A bus has no pipelining.
+GATHERS = (("bus", "bus", False), ("tree", "tree", True), ("tree s&f", "tree", False),
+           ("ring", "ring", True), ("ring s&f", "ring", False))
 
 #: DRAM channels of the contention sweep: 0 is one private channel per PE.
 CONTENTION_CHANNELS = (0, 4, 1)
@@ -131,19 +135,21 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None) ->
     pes = [2 ** i for i in range(n_max.bit_length()) if 2 ** i <= n_max]
     if n_max not in pes:
         pes.append(n_max)
-    for topology in TOPOLOGIES:
+    for label, topology, pipelined in GATHERS:
         for p in pes:
-            cfg = config.with_(pe_count=p, gather={"topology": topology})
+            cfg = config.with_(pe_count=p,
+                               gather={"topology": topology, "pipelined": pipelined})
             r = _simulate(cfg, loads[n_max], meta)
-            sweep.append({"topology": topology, "pe_count": p, "frame_cycles": r.frame_cycles,
+            sweep.append({"gather": label, "topology": topology, "pipelined": pipelined,
+                          "pe_count": p, "frame_cycles": r.frame_cycles,
                           "gather_cycles": r.gather_cycles, "seconds": r.seconds,
                           "gather_share": r.gather_share})
     for row in sweep:
-        first = next(x for x in sweep if x["topology"] == row["topology"])
+        first = next(x for x in sweep if x["gather"] == row["gather"])
         row["speedup"] = first["frame_cycles"] / row["frame_cycles"]
         row["efficiency"] = row["speedup"] * first["pe_count"] / row["pe_count"]
-    saturation = {t: _saturation([s for s in sweep if s["topology"] == t])
-                  for t in TOPOLOGIES}
+    saturation = {g[0]: _saturation([s for s in sweep if s["gather"] == g[0]])
+                  for g in GATHERS}
     contention = []
     for channels in CONTENTION_CHANNELS:
         for p in pes:
@@ -199,15 +205,16 @@ def _plots(rows, sweep, contention, detail, out, scene):
     ax[1].set_xlabel("PE")
     ax[1].set_ylabel("utilisation (busy / frame)")
     ax[1].set_title(f"n = {detail.map_count}: utilisation per PE", fontsize=10)
-    for topology in TOPOLOGIES:
-        pts = [s for s in sweep if s["topology"] == topology]
-        ax[2].plot([s["pe_count"] for s in pts], [s["seconds"] * 1e3 for s in pts], "o-",
-                   label=topology)
+    styles = {"bus": "s--", "tree": "o-", "tree s&f": "o:", "ring": "^-", "ring s&f": "v:"}
+    for label, _, _ in GATHERS:
+        pts = [s for s in sweep if s["gather"] == label]
+        ax[2].plot([s["pe_count"] for s in pts], [s["seconds"] * 1e3 for s in pts],
+                   styles.get(label, "o-"), label=label, markersize=5 if "s&f" in label else 6)
     ax[2].set_xscale("log", base=2)
     ax[2].set_yscale("log")
     ax[2].set_xlabel("PEs P")
     ax[2].set_ylabel("frame time (ms)")
-    ax[2].set_title(f"n = {detail.map_count}: PE count and gather topology", fontsize=10)
+    ax[2].set_title(f"n = {detail.map_count}: PE count and gather network", fontsize=10)
     ax[2].legend(fontsize=8)
     for ch in CONTENTION_CHANNELS:
         pts = [c for c in contention if c["dram_channels"] == ch]
@@ -236,13 +243,15 @@ def format_report(result) -> str:
                      f"{r['replicated_traversal']:7.2f} {r['energy_mj']:8.3f} "
                      f"{r['nj_per_query']:8.1f}")
     n = result["largest_n"]["map_count"]
-    lines.append(f"n = {n} maps on P PEs: frame ms (speedup vs P = 1) per gather topology")
-    lines.append(f"{'P':>5} " + " ".join(f"{t:>16}" for t in TOPOLOGIES))
-    by = {(s["topology"], s["pe_count"]): s for s in result["sweep"]}
+    lines.append(f"n = {n} maps on P PEs: frame ms (speedup vs P = 1) per gather network "
+                 f"(s&f: store-and-forward)")
+    labels = list(dict.fromkeys(s["gather"] for s in result["sweep"]))
+    lines.append(f"{'P':>5} " + " ".join(f"{t:>16}" for t in labels))
+    by = {(s["gather"], s["pe_count"]): s for s in result["sweep"]}
     for p in sorted({s["pe_count"] for s in result["sweep"]}):
         lines.append(f"{p:5d} " + " ".join(
             f"{by[t, p]['seconds'] * 1e3:8.1f} ({by[t, p]['speedup']:5.1f}x)".rjust(16)
-            for t in TOPOLOGIES))
+            for t in labels))
     parts = [f"{k}: P = {v}" if v < n else f"{k}: still paying at P = {v} = n"
              for k, v in result["saturation_pe_count"].items()]
     lines.append(f"where doubling the PEs gains under 5% (n = {n}): {'; '.join(parts)}")
