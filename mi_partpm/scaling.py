@@ -73,7 +73,7 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
                    str(spp), "-q", "-o", f"{stem}.exr", "--stats-json", f"{stem}.json"]
             if data_dir:
                 cmd += ["--data", str(data_dir)]
-            say(f"P = {p}, run {rep + 1}/{repeats}: {' '.join(cmd[:4])} ...")
+            say(f"P = {p}, run {rep + 1}/{repeats}: mpiexec -n {p} partpm render {scene} ...")
             done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
                                   env=os.environ.copy())
             if done.returncode != 0:
