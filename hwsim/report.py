@@ -27,7 +27,10 @@ __all__ = ["run_report", "format_report", "sensitivity", "ASSUMED"]
 ASSUMED = ("cycles_per_node", "cycles_per_test", "cycles_per_accumulate",
            "outstanding_queries", "memory.sram_bytes", "memory.dram_bytes_per_cycle",
            "memory.dram_latency_cycles", "gather.hop_latency_cycles",
-           "gather.link_bytes_per_cycle", "gather.adder_latency_cycles")
+           "gather.link_bytes_per_cycle", "gather.adder_latency_cycles",
+           "energy.pj_per_node", "energy.pj_per_test", "energy.pj_per_accumulate",
+           "energy.pj_per_dram_byte", "energy.pj_per_link_byte", "energy.pj_per_add",
+           "energy.static_watts_per_pe")
 
 
 def _scaled(config, name, factor):
@@ -44,21 +47,22 @@ def _scaled(config, name, factor):
 
 def sensitivity(config, loads, meta, factors=(0.5, 2.0)) -> list:
     """Each assumed constant times 0.5 and 2: the speedup at the largest n (with the gather,
-    one PE per map) and the gather's share of the frame, against the unchanged config."""
+    one PE per map), the gather's share of the frame and the energy of a frame at the largest
+    n over that at the smallest, against the unchanged config."""
     ns = sorted(loads)
     first, last = ns[0], ns[-1]
 
     def measure(cfg):
         a = _simulate(cfg.with_(pe_count=first), loads[first], meta)
         b = _simulate(cfg.with_(pe_count=last), loads[last], meta)
-        return a.frame_cycles / b.frame_cycles, b.gather_share
-    speedup0, share0 = measure(config)
-    rows = [{"constant": "(as configured)", "factor": 1.0, "speedup": speedup0,
-             "gather_share": share0}]
+        return a.frame_cycles / b.frame_cycles, b.gather_share, b.energy_joules / a.energy_joules
+    rows = [{"constant": "(as configured)", "factor": 1.0,
+             **dict(zip(("speedup", "gather_share", "energy_ratio"), measure(config)))}]
     for name in ASSUMED:
         for f in factors:
-            sp, sh = measure(_scaled(config, name, f))
-            rows.append({"constant": name, "factor": f, "speedup": sp, "gather_share": sh})
+            sp, sh, en = measure(_scaled(config, name, f))
+            rows.append({"constant": name, "factor": f, "speedup": sp, "gather_share": sh,
+                         "energy_ratio": en})
     return rows
 
 
@@ -282,9 +286,13 @@ def format_report(result) -> str:
         speeds = [r["speedup"] for r in sens]
         shares = [r["gather_share"] for r in sens]
         worst = min(sens, key=lambda r: r["speedup"])
+        energy = [r["energy_ratio"] for r in sens]
         lines.append(f"sensitivity (each assumed constant x0.5 and x2): speedup at n = {n} "
                      f"{min(speeds):.2f}-{max(speeds):.2f} (as configured "
                      f"{sens[0]['speedup']:.2f}; lowest with {worst['constant']} "
                      f"x{worst['factor']:g}), gather share {min(shares) * 100:.2f}-"
-                     f"{max(shares) * 100:.2f}%")
+                     f"{max(shares) * 100:.2f}%, energy per frame at n = {n} over n = "
+                     f"{result['rows'][0]['n']} "
+                     f"{min(energy):.2f}-{max(energy):.2f}x (as configured "
+                     f"{sens[0]['energy_ratio']:.2f}x)")
     return "\n".join(lines)
