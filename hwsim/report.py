@@ -96,6 +96,10 @@ def calibration(loads, meta, check_dir=None) -> dict:
     from .calibrate import check, fit
     if any(w.map_seconds.size == 0 for w in loads.values()):
         return {}
+    maps = sum(w.n for w in loads.values())
+    if maps < 5:
+        return {"skipped": f"needs >= 5 measured maps for its 4 costs, the "
+                           f"workloads hold {maps}"}
     costs = fit(loads)
     out = {"fit_on": meta.get("scene", ""), "costs": costs.__dict__,
            "self": check(costs, loads)}
@@ -235,6 +239,10 @@ def _plots(rows, sweep, contention, detail, out, scene):
     plt.close(fig)
 
 
+def _or_na(value, width):
+    return f"{value:{width}.2f}" if value == value else "n/a".rjust(width)
+
+
 def format_report(result) -> str:
     lines = [f"{'n=PEs':>5} {'frame ms':>9} {'fps':>8} {'speedup':>8} {'w/o gather':>10} "
              f"{'gather %':>8} {'imbalance':>9} {'util':>5} {'DRAM MB':>8} {'nodes x':>7} "
@@ -244,7 +252,7 @@ def format_report(result) -> str:
                      f"{r['speedup']:8.2f} {r['speedup_without_gather']:10.2f} "
                      f"{r['gather_share'] * 100:8.2f} {r['load_imbalance']:9.3f} "
                      f"{r['utilisation_mean']:5.2f} {r['dram_bytes_max'] / 1e6:8.1f} "
-                     f"{r['replicated_traversal']:7.2f} {r['energy_mj']:8.3f} "
+                     f"{_or_na(r['replicated_traversal'], 7)} {r['energy_mj']:8.3f} "
                      f"{r['nj_per_query']:8.1f}")
     n = result["largest_n"]["map_count"]
     lines.append(f"n = {n} maps on P PEs: frame ms (speedup vs P = 1) per gather network "
@@ -270,7 +278,9 @@ def format_report(result) -> str:
                          f"P = {best['pe_count']})")
         lines.append(f"every map in DRAM (n = {n}), DRAM channels {'; '.join(parts)}")
     cal = result.get("calibration")
-    if cal:
+    if cal and "skipped" in cal:
+        lines.append(f"calibration skipped: {cal['skipped']}")
+    elif cal:
         c = cal["costs"]
         text = (f"calibration on {cal['fit_on']}'s measured per-map times: "
                 f"{c['per_node'] * 1e9:.2f} ns/node, {c['per_test'] * 1e9:.2f} ns/test, "
