@@ -157,10 +157,11 @@ def _parser() -> argparse.ArgumentParser:
 
     h = sub.add_parser("hwsim", help="simulate a PE array on the workloads of 'partpm speedup'")
     h.add_argument("workloads", help="a workloads/ directory written by 'partpm speedup'")
-    h.add_argument("--config", help="hardware configuration (TOML; see hwsim/config.py)")
+    h.add_argument("--config", help="hardware configuration (TOML; every key, unit and default "
+                                     "in hwsim/default.toml)")
     h.add_argument("--check", metavar="WORKLOAD_DIR",
                    help="another scene's workloads: predict its measured per-map times with "
-                        "the costs calibrated on WORKLOAD_DIR")
+                        "the costs calibrated on 'workloads'")
     h.add_argument("--out", required=True, help="output directory (JSON, CSV, plots)")
     h.add_argument("-q", "--quiet", action="store_true", help="print only errors")
 
