@@ -110,10 +110,15 @@ def calibration(loads, meta, check_dir=None) -> dict:
     return out
 
 
-def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None) -> dict:
+def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
+               progress=None) -> dict:
     """Simulate every recorded n, sweep PEs, topologies, DRAM sharing and the assumed
-    constants, calibrate on the measured times (and check on ``check_dir``); write the files."""
+    constants, calibrate on the measured times (and check on ``check_dir``); write the files.
+    ``progress``: called with a line before each phase (None: silent)."""
+    say = progress or (lambda *a: None)
     meta, loads = load_workloads(workload_dir)
+    say(f"{meta.get('scene', workload_dir)}: n = {', '.join(map(str, sorted(loads)))}, "
+        f"{meta['queries']} queries per map")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ns = sorted(loads)
@@ -139,6 +144,7 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None) ->
         row["efficiency"] = row["speedup"] / row["n"] * rows[0]["n"]
 
     n_max = ns[-1]
+    say(f"sweeping P and the gather network at n = {ns[-1]} ...")
     sweep = []
     pes = [2 ** i for i in range(n_max.bit_length()) if 2 ** i <= n_max]
     if n_max not in pes:
@@ -158,6 +164,7 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None) ->
         row["efficiency"] = row["speedup"] * first["pe_count"] / row["pe_count"]
     saturation = {g[0]: _saturation([s for s in sweep if s["gather"] == g[0]])
                   for g in GATHERS}
+    say("sweeping shared DRAM channels (event model) ...")
     contention = []
     for channels in CONTENTION_CHANNELS:
         for p in pes:
@@ -176,6 +183,7 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None) ->
         _channels_label(ch): _saturation([c for c in contention if c["dram_channels"] == ch])
         for ch in CONTENTION_CHANNELS}
     detail = _simulate(config.with_(pe_count=n_max), loads[n_max], meta)
+    say(f"sensitivity: {len(ASSUMED)} constants x0.5 and x2 ...")
     sens = sensitivity(config, loads, meta)
     result = {"config": asdict(config), "workload": {k: meta[k] for k in (
         "scene", "queries", "radius", "photons_stored") if k in meta},

@@ -396,7 +396,8 @@ def _hwsim(args) -> int:
     from hwsim.report import format_report, run_report
     try:
         config = load_config(args.config)
-        result = run_report(args.workloads, config, args.out, args.check)
+        result = run_report(args.workloads, config, args.out, args.check,
+                            progress=_progress(args))
     except (OSError, ValueError) as e:
         raise UsageError(str(e)) from None
     if not args.quiet:
