@@ -88,6 +88,7 @@ class TileWork:
     moved: np.ndarray       # (n, K) bytes moved from DRAM
     tile_sizes: np.ndarray  # (K,) queries per tile
     in_sram: np.ndarray     # (n,) whether each map fits its PE's SRAM
+    totals: tuple           # nodes visited, photons tested, photons found over all maps
 
     @property
     def time(self) -> np.ndarray:
@@ -98,16 +99,7 @@ class TileWork:
 def tile_work(config: HardwareConfig, workload, bytes_per_node=8, bytes_per_photon=28) -> \
         TileWork:
     """Per map and tile: compute cycles and the memory demand of maps that spill to DRAM."""
-    q = workload.queries
-    starts = np.arange(0, q, config.tile_queries)
-    sizes = np.diff(np.append(starts, q))
-
-    def per_tile(a):
-        a = np.asarray(a, dtype=np.float64)
-        return np.add.reduceat(a, starts, axis=1) if q else np.zeros((a.shape[0], 0))
-    nodes, tested, found = (per_tile(a) for a in (workload.nodes_visited,
-                                                   workload.photons_tested,
-                                                   workload.photons_found))
+    nodes, tested, found, sizes = workload.tile_counts(config.tile_queries)
     compute = (nodes * config.cycles_per_node + tested * config.cycles_per_test
                + found * config.cycles_per_accumulate)
     mem = config.memory
@@ -119,7 +111,8 @@ def tile_work(config: HardwareConfig, workload, bytes_per_node=8, bytes_per_phot
     transfer = moved / mem.dram_bytes_per_cycle
     latency = nodes * mem.dram_latency_cycles / config.outstanding_queries
     latency[in_sram] = 0.0
-    return TileWork(compute, latency, transfer, moved, sizes, in_sram)
+    return TileWork(compute, latency, transfer, moved, sizes, in_sram,
+                    (float(nodes.sum()), float(tested.sum()), float(found.sum())))
 
 
 def gather_cycles(config: HardwareConfig, pe_count: int, queries: int) -> float:
@@ -178,7 +171,7 @@ def frame_report(config, workload, work: TileWork, model, busy, stall, ready,
         dram[pe] += float(work.moved[m].sum())
         if work.in_sram[m]:
             sram[pe] = max(sram[pe], float(workload.map_bytes[m]))
-    energy = _energy(config, workload, dram, seconds, queries)
+    energy = _energy(config, work, dram, seconds, queries)
     return FrameReport(
         pe_count=pes, map_count=n, queries=queries, model=model, frame_cycles=frame,
         compute_cycles=compute, gather_cycles=gather, exposed_gather_cycles=frame - compute,
@@ -192,20 +185,18 @@ def frame_report(config, workload, work: TileWork, model, busy, stall, ready,
         sram_bytes=sram, dram_bytes=dram,
         dram_bandwidth=dram / seconds if seconds > 0 else np.zeros(pes),
         dram_channel_busy=channel_busy,
-        nodes_visited=float(np.asarray(workload.nodes_visited, dtype=np.float64).sum()),
+        nodes_visited=work.totals[0],
         energy_joules=sum(energy.values()), energy=energy)
 
 
-def _energy(config, workload, dram_bytes, seconds, queries) -> dict:
+def _energy(config, work: TileWork, dram_bytes, seconds, queries) -> dict:
     e = config.energy
     pj = 1e-12
-    total = {k: float(np.asarray(a, dtype=np.float64).sum()) for k, a in (
-        ("nodes", workload.nodes_visited), ("tested", workload.photons_tested),
-        ("found", workload.photons_found))}
+    nodes, tested, found = work.totals
     link_bytes, adds = gather_traffic(config, config.pe_count, queries)
-    return {"nodes": total["nodes"] * e.pj_per_node * pj,
-            "tests": total["tested"] * e.pj_per_test * pj,
-            "accumulates": total["found"] * e.pj_per_accumulate * pj,
+    return {"nodes": nodes * e.pj_per_node * pj,
+            "tests": tested * e.pj_per_test * pj,
+            "accumulates": found * e.pj_per_accumulate * pj,
             "dram": float(dram_bytes.sum()) * e.pj_per_dram_byte * pj,
             "gather": (link_bytes * e.pj_per_link_byte + adds * e.pj_per_add) * pj,
             "static": config.pe_count * e.static_watts_per_pe * seconds}
@@ -239,13 +230,13 @@ def simulate(config: HardwareConfig, workload, bytes_per_node=8, bytes_per_photo
         from .events import simulate_events
         return simulate_events(config, workload, work)
     time = work.time
-    busy, stall = np.zeros(pes), np.zeros(pes)
+    busy, stall, channel_busy = np.zeros(pes), np.zeros(pes), np.zeros(pes)
     ready = np.zeros(work.tile_sizes.size)
     for p, maps in enumerate(pe_maps(n, pes)):
         busy[p] = float(work.compute[maps].sum())
+        channel_busy[p] = float(work.transfer[maps].sum())     # a private channel per PE
         # Tile-major running sum, added in the same order as the event model's clock.
         ends = np.cumsum(time[maps].T.ravel()).reshape(-1, maps.size)
         stall[p] = (ends[-1, -1] if ends.size else 0.0) - busy[p]
         ready = np.maximum(ready, ends[:, -1])
-    channel_busy = np.array([float(work.transfer[maps].sum()) for maps in pe_maps(n, pes)])
     return frame_report(config, workload, work, "analytic", busy, stall, ready, channel_busy)

@@ -4,9 +4,10 @@ For every recorded n the array has one PE per map (the paper's proposal) and the
 simulated with and without the gather; the speedup against n = 1 shows what the gather costs.
 For the largest n, a sweep over PE counts P (maps shared round-robin) and gather networks
 (a bus; trees and rings, pipelined and store-and-forward) shows where adding PEs stops paying:
-the first P from which doubling P shortens the frame by less than 5%. A second sweep puts every map in DRAM (no SRAM) and lets the PEs share 1 or 4
-DRAM channels, or have one each: the discrete-event model shows where contention for the
-channels, not the gather, ends the scaling.
+the first P from which doubling P shortens the frame by less than 5%. A second sweep puts
+every map in DRAM (no SRAM) and lets the PEs share 1 or 4 DRAM channels, or have one each:
+the discrete-event model shows where contention for the channels, not the gather, ends the
+scaling.
 """
 from __future__ import annotations
 
@@ -34,15 +35,12 @@ ASSUMED = ("cycles_per_node", "cycles_per_test", "cycles_per_accumulate",
 
 
 def _scaled(config, name, factor):
-    if "." in name:
-        group, key = name.split(".")
-        value = getattr(getattr(config, group), key)
-        new = type(value)(value * factor) if not isinstance(value, int) else \
-            max(1, int(round(value * factor)))
-        return config.with_(**{group: {key: new}})
-    value = getattr(config, name)
+    """``config`` with the constant ``name`` ("key" or "group.key") times ``factor`` (integers
+    rounded, and kept >= 1)."""
+    group, _, key = name.rpartition(".")
+    value = getattr(getattr(config, group) if group else config, key)
     new = max(1, int(round(value * factor))) if isinstance(value, int) else value * factor
-    return config.with_(**{name: new})
+    return config.with_(**({group: {key: new}} if group else {key: new}))
 
 
 def sensitivity(config, loads, meta, factors=(0.5, 2.0)) -> list:
@@ -76,6 +74,14 @@ CONTENTION_CHANNELS = (0, 4, 1)
 
 def _channels_label(channels):
     return "private" if channels == 0 else f"{channels} shared"
+
+
+def _add_speedups(rows, group: str):
+    """Speedup (and efficiency) of each row against the first row of its ``group``."""
+    for row in rows:
+        first = next(x for x in rows if x[group] == row[group])
+        row["speedup"] = first["frame_cycles"] / row["frame_cycles"]
+        row["efficiency"] = row["speedup"] * first["pe_count"] / row["pe_count"]
 
 
 def _saturation(points) -> int:
@@ -125,8 +131,7 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
     rows = []
     base_nodes = float(loads[ns[0]].nodes_visited.sum()) if ns[0] == 1 else None
     for n in ns:
-        cfg = config.with_(pe_count=n)
-        r = _simulate(cfg, loads[n], meta)
+        r = _simulate(config.with_(pe_count=n), loads[n], meta)
         rows.append({"n": n, "pe_count": n, "frame_cycles": r.frame_cycles,
                      "compute_cycles": r.compute_cycles, "gather_cycles": r.gather_cycles,
                      "seconds": r.seconds, "frames_per_second": r.frames_per_second,
@@ -143,8 +148,8 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
         row["speedup_without_gather"] = rows[0]["compute_cycles"] / row["compute_cycles"]
         row["efficiency"] = row["speedup"] / row["n"] * rows[0]["n"]
 
-    n_max = ns[-1]
-    say(f"sweeping P and the gather network at n = {ns[-1]} ...")
+    n_max, detail = ns[-1], r          # the largest n, one PE per map
+    say(f"sweeping P and the gather network at n = {n_max} ...")
     sweep = []
     pes = [2 ** i for i in range(n_max.bit_length()) if 2 ** i <= n_max]
     if n_max not in pes:
@@ -158,10 +163,7 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
                           "pe_count": p, "frame_cycles": r.frame_cycles,
                           "gather_cycles": r.gather_cycles, "seconds": r.seconds,
                           "gather_share": r.gather_share})
-    for row in sweep:
-        first = next(x for x in sweep if x["gather"] == row["gather"])
-        row["speedup"] = first["frame_cycles"] / row["frame_cycles"]
-        row["efficiency"] = row["speedup"] * first["pe_count"] / row["pe_count"]
+    _add_speedups(sweep, "gather")
     saturation = {g[0]: _saturation([s for s in sweep if s["gather"] == g[0]])
                   for g in GATHERS}
     say("sweeping shared DRAM channels (event model) ...")
@@ -176,13 +178,10 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
                                    r.pe_busy.sum() + r.pe_stall.sum())),
                                "channel_utilisation": float(
                                    r.dram_channel_busy.max() / r.compute_cycles)})
-    for c in contention:
-        first = next(x for x in contention if x["dram_channels"] == c["dram_channels"])
-        c["speedup"] = first["frame_cycles"] / c["frame_cycles"]
+    _add_speedups(contention, "dram_channels")
     contention_saturation = {
         _channels_label(ch): _saturation([c for c in contention if c["dram_channels"] == ch])
         for ch in CONTENTION_CHANNELS}
-    detail = _simulate(config.with_(pe_count=n_max), loads[n_max], meta)
     say(f"sensitivity: {len(ASSUMED)} constants x0.5 and x2 ...")
     sens = sensitivity(config, loads, meta)
     result = {"config": asdict(config), "workload": {k: meta[k] for k in (

@@ -5,7 +5,7 @@ NumPy and JSON only: hwsim never imports Mitsuba.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,10 +26,29 @@ class MapWorkloads:
     map_photons: np.ndarray        # (n,)
     map_bytes: np.ndarray          # (n,)
     map_seconds: np.ndarray        # (n, repeats), measured; may be empty for synthetic loads
+    _tile_counts: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def queries(self) -> int:
         return int(self.nodes_visited.shape[1])
+
+    def tile_counts(self, tile_queries: int) -> tuple:
+        """(nodes, tested, found, sizes): the counts summed per map over tiles of
+        ``tile_queries`` queries, as float64 (n, K) arrays, and the queries per tile (K,).
+        Computed once per tile size: every simulation of a sweep reuses them."""
+        if tile_queries not in self._tile_counts:
+            q = self.queries
+            starts = np.arange(0, q, tile_queries)
+            sizes = np.diff(np.append(starts, q))
+
+            def per_tile(a):
+                if q == 0:
+                    return np.zeros((a.shape[0], 0))
+                return np.add.reduceat(np.asarray(a, dtype=np.float64), starts, axis=1)
+            self._tile_counts[tile_queries] = (per_tile(self.nodes_visited),
+                                               per_tile(self.photons_tested),
+                                               per_tile(self.photons_found), sizes)
+        return self._tile_counts[tile_queries]
 
 
 def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
