@@ -10,11 +10,10 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.mi-partpm-installed
 OUT    ?= out
-DATA   ?= $(abspath ../shared/data)
 
 # Evaluated only by the recipes that use it (recursive '='), so 'make help' installs nothing.
 LLVM    = $(shell sh tools/libllvm.sh)
-RUN_ENV = DRJIT_LIBLLVM_PATH="$(LLVM)" PARTPM_DATA="$${PARTPM_DATA:-$(DATA)}"
+RUN_ENV = DRJIT_LIBLLVM_PATH="$(LLVM)"
 
 .PHONY: demo test install llvm help clean
 

@@ -81,7 +81,7 @@ def _scene_options(p, maps_default=8):
     p.add_argument("--seed", type=int, default=0, help="seed of photons and eye samples")
     p.add_argument("--data", metavar="DIR",
                    help="directory of scene data such as happy_buddha_20k.ply "
-                        "(default: $PARTPM_DATA)")
+                        "(default: $PARTPM_DATA, else the package's copy)")
     p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
     p.add_argument("-q", "--quiet", action="store_true", help="print only errors")
 

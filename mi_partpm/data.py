@@ -1,7 +1,9 @@
-"""Finding the data files that are not shipped with the package (the Happy Buddha mesh).
+"""Finding the data files of the built-in scenes (the Happy Buddha mesh).
 
-Data is looked up in the directory given by the caller (``data_dir=``, ``--data``), else in
-the one named by the ``PARTPM_DATA`` environment variable; never at a hard-coded path.
+The files ship with the package, in ``mi_partpm/scenes/data/`` (see the README there for their
+provenance). A directory given by the caller (``data_dir=``, ``--data``), else the one named by
+the ``PARTPM_DATA`` environment variable, overrides that: the file is then read from there,
+and its absence there is an error, not a silent fallback.
 """
 from __future__ import annotations
 
@@ -9,12 +11,15 @@ import os
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["DATA_ENV", "MissingDataError", "find_data_file", "DATA_FILES"]
+__all__ = ["DATA_ENV", "PACKAGE_DATA", "MissingDataError", "find_data_file", "DATA_FILES"]
 
 #: Environment variable naming the data directory.
 DATA_ENV = "PARTPM_DATA"
 
-#: File name -> where to get it (shown when it is missing).
+#: Where the package keeps its own copies of the data files.
+PACKAGE_DATA = Path(__file__).resolve().parent / "scenes" / "data"
+
+#: File name -> what it is and where to get another copy (shown when it is missing).
 DATA_FILES = {
     "happy_buddha_20k.ply": (
         "the Stanford Happy Buddha decimated to about 20,000 triangles (the paper's 20,062). "
@@ -31,7 +36,8 @@ class MissingDataError(FileNotFoundError):
 
 
 def find_data_file(name: str, data_dir: Optional[os.PathLike] = None) -> Path:
-    """The path of data file ``name`` in ``data_dir`` or ``$PARTPM_DATA``.
+    """The path of data file ``name``: in ``data_dir`` or ``$PARTPM_DATA`` when one is given,
+    else the package's own copy.
 
     Raises
     ------
@@ -39,19 +45,16 @@ def find_data_file(name: str, data_dir: Optional[os.PathLike] = None) -> Path:
         Not found; the message says where it looked, what the file is, where to get it and
         where to put it.
     """
-    looked = []
-    candidates = []
     if data_dir is not None:
-        candidates.append(("data_dir", Path(data_dir)))
+        label, directory = "data_dir", Path(data_dir)
     elif os.environ.get(DATA_ENV):
-        candidates.append((DATA_ENV, Path(os.environ[DATA_ENV])))
-    for label, directory in candidates:
-        path = directory / name
-        if path.is_file():
-            return path
-        looked.append(f"{label}={str(directory)!r}")
-    where = ("looked in " + ", ".join(looked)) if looked else \
-        f"no data directory given (argument data_dir / --data, or ${DATA_ENV})"
+        label, directory = DATA_ENV, Path(os.environ[DATA_ENV])
+    else:
+        label, directory = "the package's data folder", PACKAGE_DATA
+    path = directory / name
+    if path.is_file():
+        return path
+    where = f"looked in {label}={str(directory)!r}"
     about = DATA_FILES.get(name, "a data file of a built-in scene")
     raise MissingDataError(
         f"data file {name!r} not found: {where}. It is {about}. Put it in a directory and "

@@ -11,7 +11,7 @@ from conftest import render
 from mi_partpm import metrics
 from mi_partpm.cli import main
 from mi_partpm.compare import CompareSettings, run_compare
-from mi_partpm.data import MissingDataError
+from mi_partpm.data import PACKAGE_DATA, MissingDataError, find_data_file
 from mi_partpm.figures import save_heatmap
 from test_render import sphere_scene
 
@@ -95,15 +95,23 @@ def test_happy_buddha_loads_with_the_paper_mesh():
     assert abs(extent.max() - 0.3) < 1e-6         # r = 1/20 of it = 1.5 cm
 
 
-def test_missing_mesh_says_where_to_get_it(tmp_path, monkeypatch, capsys):
+def test_the_mesh_ships_with_the_package_and_overrides_are_honoured(tmp_path, monkeypatch,
+                                                                   capsys):
+    """A clone has everything: without PARTPM_DATA the mesh comes from the package. A data
+    directory given explicitly (argument, --data or PARTPM_DATA) is where the mesh is read,
+    and a mesh missing there is an error that says where it looked and what to get."""
     monkeypatch.delenv("PARTPM_DATA", raising=False)
-    with pytest.raises(MissingDataError, match="no data directory given") as e:
-        mi_partpm.load_scene("happy_buddha")
+    found = find_data_file("happy_buddha_20k.ply")
+    assert found.parent == PACKAGE_DATA and found.stat().st_size == 377_498
+    assert (PACKAGE_DATA / "README.md").read_text().count("Stanford 3D Scanning Repository")
+    with pytest.raises(MissingDataError, match=r"looked in data_dir=") as e:
+        mi_partpm.load_scene("happy_buddha", data_dir=tmp_path)
     for part in ("happy_buddha_20k.ply", "Stanford 3D Scanning Repository",
                  "PARTPM_DATA", "--data"):
         assert part in str(e.value)
-    with pytest.raises(MissingDataError, match=r"looked in data_dir="):
-        mi_partpm.load_scene("happy_buddha", data_dir=tmp_path)
+    monkeypatch.setenv("PARTPM_DATA", str(tmp_path))
+    with pytest.raises(MissingDataError, match=r"looked in PARTPM_DATA="):
+        mi_partpm.load_scene("happy_buddha")
     assert main(["render", "happy_buddha", "--data", str(tmp_path), "-o",
                  str(tmp_path / "x.exr")]) == 2
     assert "Stanford" in capsys.readouterr().err

@@ -7,13 +7,13 @@ name                   what it is
                        sphere (diffuse and specular surfaces)
 ``cornell_box_diffuse`` the Cornell box with its two white boxes, diffuse only
 ``happy_buddha``       the paper's first scene: the Stanford Happy Buddha (20,062 triangles,
-                       diffuse) on a floor under an area light; needs the mesh file
-                       ``happy_buddha_20k.ply`` (see :mod:`mi_partpm.data`)
+                       diffuse) on a floor under an area light; the mesh ships in
+                       ``scenes/data/`` (see :mod:`mi_partpm.data`)
 =====================  ==================================================================
 
 Every built-in scene takes the parameters ``resx``, ``resy`` (film size, default 480) and
 ``spp`` (samples per pixel, default 4). ``happy_buddha`` also takes ``mesh`` (the PLY file),
-filled in from the data directory unless given.
+filled in from the package's data (or ``data_dir`` / ``$PARTPM_DATA``) unless given.
 """
 from __future__ import annotations
 
@@ -68,7 +68,8 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
     spp : int, optional
         Samples per pixel, passed as the scene parameter ``spp``.
     data_dir : path, optional
-        Directory holding the data files of a built-in scene (default: ``$PARTPM_DATA``).
+        Directory holding the data files of a built-in scene (default: ``$PARTPM_DATA``, else
+        the package's own copies).
     **params
         Further ``$name`` parameters of the scene file.
 
