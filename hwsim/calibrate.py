@@ -18,6 +18,9 @@ from scipy.optimize import nnls
 
 __all__ = ["Costs", "features", "fit", "check", "synthetic_workloads"]
 
+#: Bytes of a tree node and a photon record in the synthetic workloads (those of an RGB map).
+SYNTHETIC_NODE_BYTES, SYNTHETIC_RECORD_BYTES = 8, 28
+
 
 @dataclass
 class Costs:
@@ -91,6 +94,8 @@ def synthetic_workloads(maps=(1, 2, 4, 8), queries=500, photons=20_000, seed=0,
         t = t * (1 + noise * rng.standard_normal(n))
         loads[n] = MapWorkloads(n=n, nodes_visited=nodes, photons_tested=tested,
                                 photons_found=found, map_photons=np.full(n, photons // n),
-                                map_bytes=np.full(n, photons // n * 28),
-                                map_seconds=np.tile(t[:, None], (1, 3)))
+                                map_bytes=np.full(n, photons // n * SYNTHETIC_RECORD_BYTES),
+                                map_seconds=np.tile(t[:, None], (1, 3)),
+                                bytes_per_node=SYNTHETIC_NODE_BYTES,
+                                bytes_per_photon=SYNTHETIC_RECORD_BYTES)
     return loads

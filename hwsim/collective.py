@@ -122,7 +122,7 @@ class Collective:
 
 
 def fit_collective(bench: dict) -> Collective:
-    """Fit a micro-benchmark run (``mi_partpm.reducebench`` JSON) on >= 2 ranks."""
+    """Fit a micro-benchmark run (``mi_partpm.experiments.reducebench`` JSON) on >= 2 ranks."""
     if bench["ranks"] < 2 or any(p is None for p in bench["pingpong"]):
         raise ValueError(f"alpha and beta need a micro-benchmark on >= 2 ranks, got "
                          f"{bench['ranks']}")

@@ -25,7 +25,7 @@ TOML layout (every key optional)::
     dram_channels = 0              # 0: a private channel per PE; k: k channels shared by all PEs
 
     [gather]
-    topology = "tree"              # "bus", "tree" or "ring"
+    topology = "tree"              # a network of hwsim.networks: "bus", "tree" or "ring"
     pipelined = true               # adder tree streams results level to level
     hop_latency_cycles = 2
     link_bytes_per_cycle = 8
@@ -45,10 +45,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, replace
 
+from .networks import TOPOLOGIES
+
 __all__ = ["MemoryConfig", "GatherConfig", "EnergyConfig", "HardwareConfig", "load_config",
            "TOPOLOGIES"]
 
-TOPOLOGIES = ("bus", "tree", "ring")
 SCHEDULES = ("after", "tiles")
 
 

@@ -1,6 +1,7 @@
 """The discrete-event model: PEs that share DRAM channels and queue for them.
 
-Each PE runs the same (map, tile) items as the analytic model (:mod:`hwsim.model`), in the same
+Each PE runs the same (map, tile) items (:mod:`hwsim.work`) as the analytic model
+(:mod:`hwsim.model`), in the same
 tile-major order. An item that reads DRAM sends one request of its bytes to its channel
 (PE p on channel p mod ``memory.dram_channels``); the channel serves requests first come,
 first served, each for bytes / ``dram_bytes_per_cycle`` cycles. The item ends when its compute,
@@ -19,7 +20,7 @@ import heapq
 
 import numpy as np
 
-from .model import TileWork, frame_report, pe_maps
+from .work import TileWork, frame_report, pe_maps
 
 __all__ = ["simulate_events"]
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from .config import HardwareConfig
 from .model import simulate
+from .networks import SWEEP
 from .workload import load_workloads
 
 __all__ = ["run_report", "format_report", "sensitivity", "ASSUMED"]
@@ -43,7 +44,7 @@ def _scaled(config, name, factor):
     return config.with_(**({group: {key: new}} if group else {key: new}))
 
 
-def sensitivity(config, loads, meta, factors=(0.5, 2.0)) -> list:
+def sensitivity(config, loads, factors=(0.5, 2.0)) -> list:
     """Each assumed constant times 0.5 and 2: the speedup at the largest n (with the gather,
     one PE per map), the gather's share of the frame and the energy of a frame at the largest
     n over that at the smallest, against the unchanged config."""
@@ -51,8 +52,8 @@ def sensitivity(config, loads, meta, factors=(0.5, 2.0)) -> list:
     first, last = ns[0], ns[-1]
 
     def measure(cfg):
-        a = _simulate(cfg.with_(pe_count=first), loads[first], meta)
-        b = _simulate(cfg.with_(pe_count=last), loads[last], meta)
+        a = simulate(cfg.with_(pe_count=first), loads[first])
+        b = simulate(cfg.with_(pe_count=last), loads[last])
         return a.frame_cycles / b.frame_cycles, b.gather_share, b.energy_joules / a.energy_joules
     rows = [{"constant": "(as configured)", "factor": 1.0,
              **dict(zip(("speedup", "gather_share", "energy_ratio"), measure(config)))}]
@@ -64,9 +65,9 @@ def sensitivity(config, loads, meta, factors=(0.5, 2.0)) -> list:
     return rows
 
 
-#: The gather networks of the sweep: (label, topology, pipelined). A bus has no pipelining.
-GATHERS = (("bus", "bus", False), ("tree", "tree", True), ("tree s&f", "tree", False),
-           ("ring", "ring", True), ("ring s&f", "ring", False))
+#: The gather networks of the sweep: (label, topology, pipelined), every variant of
+#: :data:`hwsim.networks.NETWORKS`.
+GATHERS = SWEEP
 
 #: DRAM channels of the contention sweep: 0 is one private channel per PE.
 CONTENTION_CHANNELS = (0, 4, 1)
@@ -90,10 +91,6 @@ def _saturation(points) -> int:
         if b["frame_cycles"] > 0.95 * a["frame_cycles"]:
             return a["pe_count"]
     return points[-1]["pe_count"]
-
-
-def _simulate(config, w, meta):
-    return simulate(config, w, meta.get("bytes_per_node", 8), meta.get("bytes_per_photon", 28))
 
 
 def calibration(loads, meta, check_dir=None) -> dict:
@@ -127,11 +124,42 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
         f"{meta['queries']} queries per map")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    rows, detail = _per_n(config, loads)
+    n_max = max(loads)
+    pes = [2 ** i for i in range(n_max.bit_length()) if 2 ** i <= n_max]
+    if n_max not in pes:
+        pes.append(n_max)
+    say(f"sweeping P and the gather network at n = {n_max} ...")
+    sweep = _network_sweep(config, loads[n_max], pes)
+    say("sweeping shared DRAM channels (event model) ...")
+    contention = _contention_sweep(config, loads[n_max], pes)
+    say(f"sensitivity: {len(ASSUMED)} constants x0.5 and x2 ...")
+    sens = sensitivity(config, loads)
+    result = {"config": asdict(config), "workload": {k: meta[k] for k in (
+        "scene", "queries", "radius", "photons_stored") if k in meta},
+        "rows": rows, "sweep": sweep,
+        "saturation_pe_count": {g[0]: _saturation([s for s in sweep if s["gather"] == g[0]])
+                                for g in GATHERS},
+        "contention": contention,
+        "contention_saturation_pe_count": {
+            _channels_label(ch): _saturation([c for c in contention
+                                              if c["dram_channels"] == ch])
+            for ch in CONTENTION_CHANNELS},
+        "sensitivity": sens, "calibration": calibration(loads, meta, check_dir),
+        "largest_n": detail.as_dict()}
+    _write(out, result)
+    _plots(rows, sweep, contention, detail, out, meta.get("scene", ""))
+    return result
+
+
+def _per_n(config, loads):
+    """One PE per map for every recorded n: rows with speedups against the smallest n, and
+    the largest n's frame (for the per-PE plots)."""
     ns = sorted(loads)
     rows = []
     base_nodes = float(loads[ns[0]].nodes_visited.sum()) if ns[0] == 1 else None
     for n in ns:
-        r = _simulate(config.with_(pe_count=n), loads[n], meta)
+        r = simulate(config.with_(pe_count=n), loads[n])
         rows.append({"n": n, "pe_count": n, "frame_cycles": r.frame_cycles,
                      "compute_cycles": r.compute_cycles, "gather_cycles": r.gather_cycles,
                      "seconds": r.seconds, "frames_per_second": r.frames_per_second,
@@ -143,35 +171,37 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
                      "nj_per_query": r.energy_joules / r.queries * 1e9,
                      "replicated_traversal": (r.nodes_visited / base_nodes
                                               if base_nodes else float("nan"))})
+        largest = r
     for row in rows:
         row["speedup"] = rows[0]["frame_cycles"] / row["frame_cycles"]
         row["speedup_without_gather"] = rows[0]["compute_cycles"] / row["compute_cycles"]
         row["efficiency"] = row["speedup"] / row["n"] * rows[0]["n"]
+    return rows, largest
 
-    n_max, detail = ns[-1], r          # the largest n, one PE per map
-    say(f"sweeping P and the gather network at n = {n_max} ...")
+
+def _network_sweep(config, workload, pes) -> list:
+    """Every gather network of :data:`GATHERS` on every P of ``pes``."""
     sweep = []
-    pes = [2 ** i for i in range(n_max.bit_length()) if 2 ** i <= n_max]
-    if n_max not in pes:
-        pes.append(n_max)
     for label, topology, pipelined in GATHERS:
         for p in pes:
             cfg = config.with_(pe_count=p,
                                gather={"topology": topology, "pipelined": pipelined})
-            r = _simulate(cfg, loads[n_max], meta)
+            r = simulate(cfg, workload)
             sweep.append({"gather": label, "topology": topology, "pipelined": pipelined,
                           "pe_count": p, "frame_cycles": r.frame_cycles,
                           "gather_cycles": r.gather_cycles, "seconds": r.seconds,
                           "gather_share": r.gather_share})
     _add_speedups(sweep, "gather")
-    saturation = {g[0]: _saturation([s for s in sweep if s["gather"] == g[0]])
-                  for g in GATHERS}
-    say("sweeping shared DRAM channels (event model) ...")
+    return sweep
+
+
+def _contention_sweep(config, workload, pes) -> list:
+    """Every map in DRAM, the PEs sharing :data:`CONTENTION_CHANNELS` channels."""
     contention = []
     for channels in CONTENTION_CHANNELS:
         for p in pes:
             cfg = config.with_(pe_count=p, memory={"sram_bytes": 0, "dram_channels": channels})
-            r = _simulate(cfg, loads[n_max], meta)
+            r = simulate(cfg, workload)
             contention.append({"dram_channels": channels, "pe_count": p, "model": r.model,
                                "frame_cycles": r.frame_cycles, "seconds": r.seconds,
                                "stall_share": float(r.pe_stall.sum() / (
@@ -179,26 +209,18 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
                                "channel_utilisation": float(
                                    r.dram_channel_busy.max() / r.compute_cycles)})
     _add_speedups(contention, "dram_channels")
-    contention_saturation = {
-        _channels_label(ch): _saturation([c for c in contention if c["dram_channels"] == ch])
-        for ch in CONTENTION_CHANNELS}
-    say(f"sensitivity: {len(ASSUMED)} constants x0.5 and x2 ...")
-    sens = sensitivity(config, loads, meta)
-    result = {"config": asdict(config), "workload": {k: meta[k] for k in (
-        "scene", "queries", "radius", "photons_stored") if k in meta},
-        "rows": rows, "sweep": sweep, "saturation_pe_count": saturation,
-        "contention": contention, "contention_saturation_pe_count": contention_saturation,
-        "sensitivity": sens, "calibration": calibration(loads, meta, check_dir),
-        "largest_n": detail.as_dict()}
+    return contention
+
+
+def _write(out: Path, result: dict):
     (out / "report.json").write_text(json.dumps(result, indent=2) + "\n")
-    for name, data in (("report.csv", rows), ("sweep.csv", sweep), ("sensitivity.csv", sens),
-                       ("contention.csv", contention)):
+    for name, key in (("report.csv", "rows"), ("sweep.csv", "sweep"),
+                      ("sensitivity.csv", "sensitivity"), ("contention.csv", "contention")):
+        data = result[key]
         with open(out / name, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=list(data[0]))
             writer.writeheader()
             writer.writerows(data)
-    _plots(rows, sweep, contention, detail, out, meta.get("scene", ""))
-    return result
 
 
 def _plots(rows, sweep, contention, detail, out, scene):

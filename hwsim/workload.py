@@ -1,4 +1,6 @@
-"""Reading the per-map workloads that ``partpm speedup`` records (format: WORKLOAD.md).
+"""The per-map workloads that ``partpm speedup`` records and hwsim replays (format:
+WORKLOAD.md). This module is the format's one owner: the recorder writes it with
+:func:`save_workloads`, hwsim reads it with :func:`load_workloads`.
 
 NumPy and JSON only: hwsim never imports Mitsuba.
 """
@@ -26,6 +28,8 @@ class MapWorkloads:
     map_photons: np.ndarray        # (n,)
     map_bytes: np.ndarray          # (n,)
     map_seconds: np.ndarray        # (n, repeats), measured; may be empty for synthetic loads
+    bytes_per_node: int            # of one internal tree node (meta.json)
+    bytes_per_photon: int          # of one photon record (meta.json)
     _tile_counts: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -71,7 +75,8 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
         with np.load(d / name) as z:
             w = MapWorkloads(n=n, **{k: z[k] for k in (
                 "nodes_visited", "photons_tested", "photons_found", "map_photons",
-                "map_bytes", "map_seconds")})
+                "map_bytes", "map_seconds")}, bytes_per_node=int(meta["bytes_per_node"]),
+                bytes_per_photon=int(meta["bytes_per_photon"]))
         for k in ("nodes_visited", "photons_tested", "photons_found"):
             shape = getattr(w, k).shape
             if shape != (n, meta["queries"]):
@@ -81,20 +86,27 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
     return meta, loads
 
 
-def save_workloads(directory, loads: dict, **meta) -> Path:
-    """Write ``{n: MapWorkloads}`` in the WORKLOAD.md format (``meta`` adds or overrides keys
-    of meta.json, e.g. ``scene``, ``radius``)."""
+def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: float = 0.0,
+                   photons_emitted: int = 0, photons_stored: int | None = None,
+                   leaf_size: int | None = None) -> Path:
+    """Write ``{n: MapWorkloads}`` in the WORKLOAD.md format. The bytes of a photon record
+    and of a tree node are the workloads' own (the same for every n)."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     queries = {w.queries for w in loads.values()}
     if len(queries) != 1:
         raise ValueError(f"every n must have the same queries, got counts {sorted(queries)}")
-    info = {"version": FORMAT_VERSION, "scene": "synthetic", "queries": queries.pop(),
-            "radius": 0.0, "photons_emitted": 0,
-            "photons_stored": int(next(iter(loads.values())).map_photons.sum()),
-            "leaf_size": 16, "bytes_per_photon": 28, "bytes_per_node": 8,
+    sizes = {(w.bytes_per_photon, w.bytes_per_node) for w in loads.values()}
+    if len(sizes) != 1:
+        raise ValueError(f"every n must have the same record and node bytes, got {sizes}")
+    bytes_per_photon, bytes_per_node = sizes.pop()
+    if photons_stored is None:
+        photons_stored = int(next(iter(loads.values())).map_photons.sum())
+    info = {"version": FORMAT_VERSION, "scene": scene, "queries": queries.pop(),
+            "radius": radius, "photons_emitted": photons_emitted,
+            "photons_stored": photons_stored, "leaf_size": leaf_size,
+            "bytes_per_photon": int(bytes_per_photon), "bytes_per_node": int(bytes_per_node),
             "maps": sorted(loads), "files": {str(n): f"n{n}.npz" for n in sorted(loads)}}
-    info.update(meta)
     for n, w in loads.items():
         np.savez_compressed(d / f"n{n}.npz", nodes_visited=w.nodes_visited,
                             photons_tested=w.photons_tested, photons_found=w.photons_found,

@@ -7,13 +7,13 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_partpm.estimate import knn_radiance_estimate
-from mi_partpm.integrators import partpm
-from mi_partpm.props import read_float, read_int, read_photon_map_params, UNLIMITED
+from mi_partpm.integrators.common import PhotonMapper
+from mi_partpm.props import read_float, read_int
 
 log = logging.getLogger("mi_partpm")
 
 
-class PMIntegrator(partpm.PartPMIntegrator):
+class PMIntegrator(PhotonMapper):
     r"""
     .. _integrator-pm:
 
@@ -23,8 +23,9 @@ class PMIntegrator(partpm.PartPMIntegrator):
     Jensen's photon mapping, the baseline the paper compares against: all ``photon_count``
     photons in one balanced kd-tree, and the radiance at every eye-ray hit estimated from its
     ``k`` nearest photons, with r the distance to the k-th (eq. 1). Photon tracing, kd-tree
-    and eye paths are those of ``partpm``; it takes the same props except ``map_count``,
-    ``radius`` and ``radius_fraction``, and adds:
+    and eye paths are those of ``partpm`` (both are :class:`~mi_partpm.integrators.common.
+    PhotonMapper` s); it takes the same props except ``map_count``, ``radius``,
+    ``radius_fraction`` and ``backend`` (one map, in this process), and adds:
 
     .. list-table::
        :header-rows: 1
@@ -51,15 +52,14 @@ class PMIntegrator(partpm.PartPMIntegrator):
         </integrator>
     """
 
-    def read_props(self, props):
-        self.params = read_photon_map_params(props, fixed_radius=False)
+    fixed_radius = False
+
+    def read_estimator_props(self, props):
         n = self.params.photon_count
         self.k = read_int(props, "k", 50, low=1, high=n,
                           allowed=f"in [1, photon_count = {n}]")
         has_cap = props is not None and "max_radius" in props
         self.max_radius = read_float(props, "max_radius", None, low=0.0) if has_cap else None
-        self.map_count = 1
-        self.backend = "local"
         self._acc = None
 
     def search_radius(self, scene):
@@ -93,8 +93,5 @@ class PMIntegrator(partpm.PartPMIntegrator):
         return L
 
     def to_string(self):
-        p = self.params
-        depth = -1 if p.max_depth == UNLIMITED else p.max_depth
-        return (f"PMIntegrator[photon_count = {p.photon_count}, k = {self.k}, max_radius = "
-                f"{self.max_radius}, max_depth = {depth}, rr_depth = {p.rr_depth}, "
-                f"seed = {p.seed}, direct = {p.direct}, hide_emitters = {p.hide_emitters}]")
+        return (f"PMIntegrator[photon_count = {self.params.photon_count}, k = {self.k}, "
+                f"max_radius = {self.max_radius}, {self.common_props_text()}]")

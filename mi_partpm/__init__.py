@@ -1,8 +1,13 @@
 """mi-partpm: partitioned photon maps for Mitsuba 3.
 
-``import mi_partpm`` registers the ``partpm`` integrator plugin for the active Mitsuba variant
-(and again whenever the variant changes), so scene files can say
-``<integrator type="partpm">``.
+``import mi_partpm`` registers the integrator plugins ``partpm`` (partitioned photon maps) and
+``pm`` (the conventional k-nearest-neighbour photon mapper) for the active Mitsuba variant, and
+again whenever the variant changes, so scene files can say ``<integrator type="partpm">``.
+
+The renderer's core lives in this package's modules, named after the algorithm's phases
+(:mod:`.trace`, :mod:`.kdtree`, :mod:`.photonmap`, :mod:`.eyepath`, :mod:`.estimate`,
+:mod:`.backends`); the paper's experiments are in :mod:`.experiments`, the command line in
+:mod:`.cli`. The README's "How it is built" section maps the whole layout.
 """
 from __future__ import annotations
 

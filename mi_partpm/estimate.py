@@ -8,6 +8,11 @@ eq. (2): with the same fixed radius r for every map,
 
 so the gathered estimate is the sum of the per-map estimates. A photon counts only if it
 arrived on the side of the surface the query looks at, so light never leaks through a thin wall.
+
+The density kernel is one function of a photon's squared distance (:data:`KERNELS`): the
+queries of :mod:`mi_partpm.kdtree` pass the distance of every photon they accept to
+:meth:`_Estimator.contribution`, which weighs it. A kernel's weight w(d^2, r^2) integrates to
+pi r^2 over the disc of radius r, so every kernel shares the normalisation 1/(pi r^2).
 """
 from __future__ import annotations
 
@@ -17,7 +22,12 @@ import mitsuba as mi
 from .kdtree import knn_query, radius_query
 from .photonmap import PhotonMaps
 
-__all__ = ["radiance_estimate", "knn_radiance_estimate", "is_plain_diffuse"]
+__all__ = ["radiance_estimate", "knn_radiance_estimate", "is_plain_diffuse", "KERNELS"]
+
+#: Density kernels: name -> weight of a photon at squared distance d2 for radius^2 r2, or None
+#: for the box kernel of the paper's eq. (2) (weight 1 within r, nothing to multiply).
+KERNELS = {"box": None}
+
 
 def is_plain_diffuse(flags):
     """True where the BSDF is diffuse reflection and nothing else (f_r = albedo / pi)."""
@@ -33,8 +43,10 @@ class _Estimator:
     diffuse base, diffuse transmission) is evaluated per photon: f_r = eval(w_p) / |cos w_p|.
     """
 
-    def __init__(self, maps: PhotonMaps, si, bsdf, active):
+    def __init__(self, maps: PhotonMaps, si, bsdf, active, radius2=None, kernel: str = "box"):
         self.maps, self.si, self.bsdf = maps, si, bsdf
+        self.radius2 = radius2
+        self.weight = KERNELS[kernel]
         self.ctx = mi.BSDFContext()
         self.active = mi.Bool(active)
         self.plain = is_plain_diffuse(bsdf.flags())
@@ -42,8 +54,9 @@ class _Estimator:
         self.facing = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
         self.n_view = si.sh_frame.n * self.facing
 
-    def contribution(self, i, found):
-        """f_r * power of photon ``i`` (power alone for plain diffuse), 0 from the far side."""
+    def contribution(self, i, dist2, found):
+        """f_r * power of photon ``i`` (power alone for plain diffuse), weighted by the kernel
+        at squared distance ``dist2``; 0 from the far side."""
         maps, si = self.maps, self.si
         wi_photon = maps.photon_direction(i, found)
         power = maps.photon_power(i, found)
@@ -52,7 +65,10 @@ class _Estimator:
         cos = dr.abs(mi.Frame3f.cos_theta(wo))
         general = found & ~self.plain & (cos > 1e-6)
         f = self.bsdf.eval(self.ctx, si, wo, general) / dr.select(general, cos, 1.0)
-        return dr.select(self.plain, dr.select(same_side, power, 0.0), f * power)
+        value = dr.select(self.plain, dr.select(same_side, power, 0.0), f * power)
+        if self.weight is not None:
+            value = value * self.weight(dist2, self.radius2)
+        return value
 
     def radiance(self, total, radius2):
         """1/(pi r^2) times the summed contributions (times f_r for plain diffuse)."""

@@ -16,7 +16,9 @@ import numpy as np
 
 from .kdtree import morton_order
 
-__all__ = ["eye_path_radiance", "direct_light", "first_estimate_hits"]
+from .props import segment_limit
+
+__all__ = ["eye_path_radiance", "direct_light", "first_hits"]
 
 
 def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf,
@@ -41,7 +43,7 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
     estimate : callable(si, bsdf, active) -> mi.Spectrum
         Reflected radiance from the photon maps at a hit.
     max_depth : int
-        Longest eye path in segments (0xffffffff for unlimited).
+        Longest eye path in segments (-1: unlimited).
     rr_depth : int
         Segment count from which Russian roulette may end a delta chain.
     nee : bool
@@ -59,6 +61,7 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
     (mi.Spectrum, mi.Bool)
         The radiance and whether the camera ray hit a surface.
     """
+    max_depth = segment_limit(max_depth)
     ray = mi.Ray3f(ray)
     L = mi.Spectrum(0)
     beta = mi.Spectrum(1)
@@ -105,13 +108,16 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
     return L, valid
 
 
-def first_estimate_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth: int = 16,
-                        sensor: int = 0):
+def first_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth: int = 16,
+               sensor: int = 0, limit: int = 0):
     """Where each eye path first needs a density estimate: its first non-delta hit.
 
     One path per sample (``spp`` per pixel, pixel-major), through the camera and along
     mirror and glass (delta) lobes, as :func:`eye_path_radiance` follows them. Paths that
     leave the scene, or stay on delta surfaces for ``max_depth`` segments, give no hit.
+    ``max_depth = 1`` gives the camera rays' own first hits (no delta bounce followed).
+    ``limit`` > 0 keeps at most that many hits, spread evenly over the samples. This is the
+    one generator of query points for the experiments (speedup, comparison, benchmarks).
 
     Returns
     -------
@@ -152,6 +158,9 @@ def first_estimate_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth:
         if not dr.any(active):
             break
     keep = dr.compress(found)
+    if 0 < limit < dr.width(keep):
+        keep = dr.gather(mi.UInt32, keep, mi.UInt32(
+            np.linspace(0, dr.width(keep) - 1, limit).round().astype(np.uint32)))
     points = np.array(dr.gather(mi.Point3f, hits.p, keep)).T
     keep = dr.gather(mi.UInt32, keep, mi.UInt32(morton_order(points).astype(np.uint32)))
     hits = dr.gather(mi.SurfaceInteraction3f, hits, keep)

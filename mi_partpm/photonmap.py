@@ -1,7 +1,9 @@
 """Partitioned photon maps: the stored photons of n maps, each map a kd-tree.
 
 :class:`PhotonMaps` joins a :class:`~mi_partpm.kdtree.Forest` (the trees) with the photons'
-attributes in tree order, on the device, ready for density estimation.
+attributes in tree order, on the device, ready for density estimation. It is the one place that
+counts a map's bytes (:meth:`PhotonMaps.map_bytes`, :func:`record_bytes`): the memory guard,
+the benchmarks, the workloads that hwsim replays and the statistics all read them here.
 """
 from __future__ import annotations
 
@@ -11,10 +13,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .kdtree import LEAF_SIZE, Forest, build_forest
-from .photons import Photons
+from .kdtree import LEAF_SIZE, Forest, build_forest, tree_bytes
+from .trace import Photons
 
-__all__ = ["PhotonMaps", "build_photon_maps", "fixed_radius"]
+__all__ = ["PhotonMaps", "build_photon_maps", "fixed_radius", "record_bytes", "map_bytes"]
 
 
 @dataclass
@@ -62,18 +64,33 @@ class PhotonMaps:
 
     @staticmethod
     def bytes_per_photon() -> int:
-        """Bytes of one photon record: position and power (float32), direction (2 x 16 bit)."""
-        channels = mi.Spectrum.Size if hasattr(mi.Spectrum, "Size") else 3
-        return 12 + 4 + 4 * channels
+        """Bytes of one photon record on the device (see :func:`record_bytes`)."""
+        return record_bytes()
 
     @property
-    def nbytes_per_photon(self) -> int:
-        return self.bytes_per_photon()
+    def map_bytes(self):
+        """Bytes of each map: its photon records plus its tree."""
+        return self.forest.photon_count.astype(np.int64) * record_bytes() + \
+            self.forest.map_nbytes
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the photon records plus the trees."""
-        return self.photon_count * self.bytes_per_photon() + self.forest.nbytes
+        """Bytes of the photon records plus the trees, over all maps."""
+        return int(self.map_bytes.sum())
+
+
+def record_bytes() -> int:
+    """Bytes of one photon record on the device: position and power (float32, one float per
+    colour channel of the variant), direction (2 x 16 bits)."""
+    channels = mi.Spectrum.Size if hasattr(mi.Spectrum, "Size") else 3
+    return 12 + 4 + 4 * channels
+
+
+def map_bytes(photon_counts, leaf_size: int = LEAF_SIZE):
+    """Bytes of maps of ``photon_counts`` photons each (records and tree), e.g. to size a
+    request before any photon is traced."""
+    counts = np.asarray(photon_counts, dtype=np.int64)
+    return counts * record_bytes() + tree_bytes(counts, leaf_size)
 
 
 def encode_direction(d: np.ndarray) -> np.ndarray:

@@ -1,8 +1,9 @@
 """Registration of the integrator plugins with Mitsuba, per variant.
 
 A Python class that subclasses ``mi.SamplingIntegrator`` belongs to the variant that was active
-when it was defined. :func:`register` therefore (re)imports the plugin modules under the active
-variant and registers their classes; ``import mi_partpm`` calls it and hooks it to every later
+when it was defined. :func:`register` therefore (re)imports the integrator modules under the
+active variant - their shared base (``mi_partpm.integrators.common``) first, then each plugin -
+and registers their classes; ``import mi_partpm`` calls it and hooks it to every later
 ``mi.set_variant``.
 """
 from __future__ import annotations
@@ -16,9 +17,11 @@ __all__ = ["register", "supported_variant", "check_variant", "PLUGINS"]
 #: Plugin name -> (module under mi_partpm.integrators, class name).
 PLUGINS = {
     "partpm": ("partpm", "PartPMIntegrator"),
-    # After partpm: pm subclasses it, so it must be reloaded after it on a variant change.
     "pm": ("pm", "PMIntegrator"),
 }
+
+#: The modules the plugins' classes derive from, reloaded before the plugins.
+BASES = ("common",)
 
 
 def supported_variant(variant) -> bool:
@@ -46,17 +49,24 @@ def register():
     variant = mi.variant()
     if variant is None:
         return
-    for name, (module_name, class_name) in PLUGINS.items():
-        if not supported_variant(variant):
+    if not supported_variant(variant):
+        for name in PLUGINS:
             mi.register_integrator(name, _unsupported)
-            continue
-        full = f"mi_partpm.integrators.{module_name}"
-        module = importlib.import_module(full)
-        if getattr(module, "_variant", None) != variant:
-            module = importlib.reload(module)
-            module._variant = variant
-        cls = getattr(module, class_name)
+        return
+    for module_name in BASES:
+        _module_for(module_name, variant)
+    for name, (module_name, class_name) in PLUGINS.items():
+        cls = getattr(_module_for(module_name, variant), class_name)
         mi.register_integrator(name, lambda props, cls=cls: cls(props))
+
+
+def _module_for(module_name: str, variant: str):
+    """``mi_partpm.integrators.<module_name>``, (re)loaded under ``variant``."""
+    module = importlib.import_module(f"mi_partpm.integrators.{module_name}")
+    if getattr(module, "_variant", None) != variant:
+        module = importlib.reload(module)
+        module._variant = variant
+    return module
 
 
 def _on_variant_change(old, new):

@@ -1,7 +1,13 @@
-"""Reading and validating integrator parameters (scene-file props or Python keyword arguments).
+"""Checking parameters: plugin props, command-line options and experiment settings alike.
 
-Every reader takes the value once, checks it on the spot and raises a :class:`ValueError`
-that names the parameter, the value received and what is allowed, before any work starts.
+The ``check_*`` functions are the one place where a value is validated: each returns the
+value (converted) or raises a :class:`ValueError` that names the parameter, the value received
+and what is allowed. The ``read_*`` functions take a prop from Mitsuba's ``Properties`` (or a
+default) and check it; the command line (:mod:`mi_partpm.cli`) and the experiment settings
+call the same checks, so a bad value reads the same everywhere.
+
+``max_depth`` follows Mitsuba: -1 (:data:`UNLIMITED_DEPTH`) means no limit, and
+:func:`segment_limit` is the one conversion to a loop bound.
 """
 from __future__ import annotations
 
@@ -9,22 +15,35 @@ import math
 from dataclasses import dataclass
 from typing import Optional
 
-__all__ = ["PhotonMapParams", "read_int", "read_float", "read_bool", "read_choice",
-           "read_photon_map_params", "DIRECT_MODES", "UNLIMITED"]
+__all__ = ["PhotonMapParams", "check_int", "check_float", "check_bool", "check_choice",
+           "read_int", "read_float", "read_bool", "read_choice", "read_photon_map_params",
+           "DIRECT_MODES", "UNLIMITED_DEPTH", "segment_limit"]
 
-#: ``max_depth`` of -1 (Mitsuba's convention for "no limit") is stored as this.
-UNLIMITED = 0xFFFFFFFF
+#: ``max_depth`` of -1: no limit (Russian roulette ends the paths), as in Mitsuba.
+UNLIMITED_DEPTH = -1
 
-#: How direct illumination is computed (DESIGN.md).
+#: How direct illumination is computed: from the photon maps, or by emitter sampling.
 DIRECT_MODES = ("photons", "nee")
 
-def _get(props, name, default):
-    return props.get(name, default) if props is not None else default
+
+def segment_limit(max_depth: int) -> int:
+    """The loop bound of a path of at most ``max_depth`` segments (-1: effectively none)."""
+    return 2**31 - 1 if max_depth == UNLIMITED_DEPTH else int(max_depth)
 
 
-def read_int(props, name: str, default, low: Optional[int] = None, high: Optional[int] = None,
-             allowed: str = "") -> int:
-    value = _get(props, name, default)
+def _range_text(low, high) -> str:
+    if low is not None and high is not None:
+        return f"in [{low}, {high}]"
+    if low is not None:
+        return f">= {low}"
+    if high is not None:
+        return f"<= {high}"
+    return ""
+
+
+def check_int(name: str, value, low: Optional[int] = None, high: Optional[int] = None,
+              allowed: str = "") -> int:
+    """``value`` as an int in [low, high]; ``allowed`` replaces the range in the message."""
     what = allowed or _range_text(low, high)
     if isinstance(value, bool) or not isinstance(value, int):
         raise ValueError(f"{name} must be an integer {what}, got {value!r}")
@@ -33,10 +52,9 @@ def read_int(props, name: str, default, low: Optional[int] = None, high: Optiona
     return int(value)
 
 
-def read_float(props, name: str, default, low: Optional[float] = None,
-               high: Optional[float] = None, low_open: bool = True,
-               high_open: bool = False) -> float:
-    value = _get(props, name, default)
+def check_float(name: str, value, low: Optional[float] = None, high: Optional[float] = None,
+                low_open: bool = True, high_open: bool = False) -> float:
+    """``value`` as a finite float between ``low`` and ``high`` (open or closed ends)."""
     lo = "(" if low_open else "["
     hi = ")" if high_open or high is None else "]"
     what = f"in {lo}{'-inf' if low is None else low}, {'inf' if high is None else high}{hi}"
@@ -53,48 +71,54 @@ def read_float(props, name: str, default, low: Optional[float] = None,
     return value
 
 
-def read_bool(props, name: str, default: bool) -> bool:
-    value = _get(props, name, default)
+def check_bool(name: str, value) -> bool:
     if not isinstance(value, bool):
         raise ValueError(f"{name} must be true or false, got {value!r}")
     return value
 
 
-def read_choice(props, name: str, default: str, choices) -> str:
-    value = _get(props, name, default)
+def check_choice(name: str, value, choices):
     if value not in choices:
         raise ValueError(f"{name} must be one of {', '.join(repr(c) for c in choices)}, "
                          f"got {value!r}")
     return value
 
 
-def _range_text(low, high) -> str:
-    if low is not None and high is not None:
-        return f"in [{low}, {high}]"
-    if low is not None:
-        return f">= {low}"
-    if high is not None:
-        return f"<= {high}"
-    return ""
+def _get(props, name, default):
+    return props.get(name, default) if props is not None else default
+
+
+def read_int(props, name: str, default, low: Optional[int] = None, high: Optional[int] = None,
+             allowed: str = "") -> int:
+    return check_int(name, _get(props, name, default), low, high, allowed)
+
+
+def read_float(props, name: str, default, low: Optional[float] = None,
+               high: Optional[float] = None, low_open: bool = True,
+               high_open: bool = False) -> float:
+    return check_float(name, _get(props, name, default), low, high, low_open, high_open)
+
+
+def read_bool(props, name: str, default: bool) -> bool:
+    return check_bool(name, _get(props, name, default))
+
+
+def read_choice(props, name: str, default: str, choices) -> str:
+    return check_choice(name, _get(props, name, default), choices)
 
 
 @dataclass
 class PhotonMapParams:
-    """The parameters shared by ``partpm`` and ``pm`` (DESIGN.md)."""
+    """The parameters shared by ``partpm`` and ``pm``."""
 
     photon_count: int = 100_000
-    max_depth: int = UNLIMITED
+    max_depth: int = UNLIMITED_DEPTH
     rr_depth: int = 5
     seed: int = 0
     direct: str = "photons"
     hide_emitters: bool = False
     radius: Optional[float] = None
     radius_fraction: float = 0.05
-
-    @property
-    def photon_depth(self) -> int:
-        """max_depth in the photon tracer's terms (-1 for unlimited)."""
-        return -1 if self.max_depth == UNLIMITED else self.max_depth
 
 
 def read_photon_map_params(props, fixed_radius: bool = True) -> PhotonMapParams:
@@ -105,11 +129,11 @@ def read_photon_map_params(props, fixed_radius: bool = True) -> PhotonMapParams:
     """
     p = PhotonMapParams()
     p.photon_count = read_int(props, "photon_count", p.photon_count, low=1)
-    max_depth = read_int(props, "max_depth", -1, allowed="= -1 (unlimited) or >= 1")
-    if max_depth != -1 and max_depth < 1:
+    p.max_depth = read_int(props, "max_depth", UNLIMITED_DEPTH,
+                           allowed="= -1 (unlimited) or >= 1")
+    if p.max_depth != UNLIMITED_DEPTH and p.max_depth < 1:
         raise ValueError(f"max_depth must be an integer = -1 (unlimited) or >= 1, "
-                         f"got {max_depth}")
-    p.max_depth = UNLIMITED if max_depth == -1 else max_depth
+                         f"got {p.max_depth}")
     p.rr_depth = read_int(props, "rr_depth", p.rr_depth, low=1)
     p.seed = read_int(props, "seed", p.seed, low=0, high=2**63 - 1)
     p.direct = read_choice(props, "direct", p.direct, DIRECT_MODES)

@@ -8,11 +8,11 @@ import mitsuba as mi
 
 import mi_partpm
 from conftest import render
-from mi_partpm import metrics
+from mi_partpm.experiments import metrics
 from mi_partpm.cli import main
-from mi_partpm.compare import CompareSettings, run_compare
+from mi_partpm.experiments.compare import CompareSettings, run_compare
 from mi_partpm.data import PACKAGE_DATA, MissingDataError, find_data_file
-from mi_partpm.figures import save_heatmap
+from mi_partpm.experiments.figures import save_heatmap
 from test_render import sphere_scene
 
 

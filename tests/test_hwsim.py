@@ -3,18 +3,20 @@ import numpy as np
 import pytest
 
 from hwsim.config import HardwareConfig, load_config
-from hwsim.model import gather_cycles, simulate
+from hwsim.model import simulate
+from hwsim.networks import gather_cycles
 from hwsim.workload import MapWorkloads
 
 
-def workload(nodes, tested, found, map_bytes=None):
-    """n maps x Q queries from nested lists."""
+def workload(nodes, tested, found, map_bytes=None, bytes_per_node=8, bytes_per_photon=28):
+    """n maps x Q queries from nested lists (nodes of 8 bytes, photon records of 28)."""
     nodes, tested, found = (np.array(a, dtype=np.uint32) for a in (nodes, tested, found))
     n = nodes.shape[0]
     return MapWorkloads(n=n, nodes_visited=nodes, photons_tested=tested, photons_found=found,
                         map_photons=np.full(n, 100), map_bytes=np.array(
                             map_bytes if map_bytes is not None else [1000] * n),
-                        map_seconds=np.zeros((n, 0)))
+                        map_seconds=np.zeros((n, 0)), bytes_per_node=bytes_per_node,
+                        bytes_per_photon=bytes_per_photon)
 
 
 BASE = HardwareConfig(pe_count=1, clock_hz=100.0, cycles_per_node=4, cycles_per_test=3,
@@ -59,7 +61,7 @@ def test_a_map_that_spills_to_dram_stalls():
                              "dram_latency_cycles": 10, "dram_burst_bytes": 64},
                      outstanding_queries=2)
     w = workload([[2]], [[4]], [[1]], map_bytes=[1000])
-    r = simulate(cfg, w, bytes_per_node=8, bytes_per_photon=28)
+    r = simulate(cfg, w)
     # Compute 2*4 + 4*3 + 1*2 = 22. Bytes: 2*8 + 4*12 + 1*16 = 80 -> 2 bursts = 128 bytes,
     # 128 cycles at 1 byte per cycle; latency 2 nodes * 10 / 2 = 10. Memory 128, stall 106.
     assert r.pe_busy.tolist() == [22] and r.pe_stall.tolist() == [106]
@@ -282,7 +284,7 @@ def test_hwsim_cli(tmp_path, capsys):
 def test_hwsim_never_imports_mitsuba():
     import subprocess
     import sys
-    code = ("import sys, hwsim.config, hwsim.model, hwsim.events, hwsim.collective, "
+    code = ("import sys, hwsim.config, hwsim.model, hwsim.events, hwsim.networks, hwsim.work, hwsim.collective, "
             "hwsim.report, hwsim.calibrate, "
             "hwsim.workload; bad = [m for m in ('mitsuba', 'drjit', 'mi_partpm') "
             "if m in sys.modules]; print(bad); sys.exit(1 if bad else 0)")

@@ -10,7 +10,7 @@ import pytest
 import mitsuba as mi
 
 from mi_partpm.cli import main
-from mi_partpm.scaling import find_mpiexec
+from mi_partpm.backends import find_mpiexec
 
 HERE = Path(__file__).parent
 RENDER = ["cornell_box", "--maps", "5", "--photons", "20000", "--resolution", "48x40",

@@ -7,7 +7,7 @@ import pytest
 import mitsuba as mi
 
 from mi_partpm.cli import main
-from mi_partpm.photons import map_seeds, map_sizes
+from mi_partpm.trace import map_seeds, map_sizes
 
 
 @pytest.mark.parametrize("props, message", [

@@ -7,7 +7,7 @@ import mitsuba as mi
 
 import mi_partpm
 from conftest import render, save_failure
-from mi_partpm.metrics import display_rel_mse
+from mi_partpm.experiments.metrics import display_rel_mse
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ import numpy as np
 
 from hwsim.workload import load_workloads
 from mi_partpm.cli import main
-from mi_partpm.speedup import run_speedup
+from mi_partpm.experiments.speedup import run_speedup
 
 
 def test_speedup_per_map_estimates_gather_to_one_map(tmp_path):

@@ -24,7 +24,7 @@ import mitsuba as mi
 
 from ..data import find_data_file
 
-__all__ = ["scene_names", "scene_path", "load_scene"]
+__all__ = ["scene_names", "scene_path", "load_scene", "check_scene"]
 
 _HERE = Path(__file__).resolve().parent
 
@@ -106,3 +106,14 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
         return mi.load_file(str(path), **{k: str(v) for k, v in params.items()})
     except RuntimeError as e:
         raise ValueError(f"could not load scene {str(path)!r}: {e}") from None
+
+
+def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool = True):
+    """Refuse a scene photon mapping cannot render: no emitter (nothing would be lit) or,
+    when ``needs_sensor``, no sensor. The one check every entry point makes."""
+    what = "the scene" if name is None else f"scene {name!r}"
+    if not scene.emitters():
+        raise ValueError(f"{what} has no emitter: nothing would be lit (photon mapping needs "
+                         f"at least one light)")
+    if needs_sensor and not scene.sensors():
+        raise ValueError(f"{what} has no sensor: add a camera to render it")

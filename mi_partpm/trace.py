@@ -7,7 +7,8 @@ density estimates add up to the full estimate with no rescaling (eq. 2).
 
 Tracing is a wavefront in Dr.Jit: one kernel per bounce over all live photon paths, after
 which the paths that ended are compacted away. The Python loop runs over bounces, never over
-photons.
+photons. The photons of this phase are :class:`Photons`, on the host; :mod:`.photonmap` builds
+the maps from them.
 """
 from __future__ import annotations
 
@@ -19,11 +20,10 @@ import mitsuba as mi
 import numpy as np
 
 from .memory import TRACE_BATCH
+from .props import segment_limit
+from .scenes import check_scene
 
-__all__ = ["Photons", "map_sizes", "map_seeds", "trace_photons", "UNLIMITED_DEPTH"]
-
-#: Internal stand-in for ``max_depth = -1`` (no limit; Russian roulette ends the paths).
-UNLIMITED_DEPTH = 2**31 - 1
+__all__ = ["Photons", "map_sizes", "map_seeds", "trace_photons", "check_emitters"]
 
 
 @dataclass
@@ -123,8 +123,7 @@ def check_emitters(scene: mi.Scene, samples: int = 1024):
     Each emitter emits ``samples`` test rays (stratified samples); Mitsuba accepts such
     values in a scene file, and the tracer would otherwise drop those photons silently.
     """
-    if not scene.emitters():
-        raise ValueError("the scene has no emitter: photon mapping needs at least one light")
+    check_scene(scene, needs_sensor=False)
     u = (np.arange(samples, dtype=np.float64) + 0.5) / samples
     rng = np.random.default_rng(0)
     s = [mi.Float(np.asarray(a, np.float32)) for a in (u, *rng.random((4, samples)))]
@@ -184,7 +183,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     check_emitters(scene)
     sizes = map_sizes(photon_count, map_count)
     maps = np.arange(map_count) if maps is None else np.asarray(list(maps), dtype=np.int64)
-    max_depth = UNLIMITED_DEPTH if max_depth == -1 else int(max_depth)
+    max_depth = segment_limit(max_depth)
 
     # Lane -> (map, index within the map), for the traced maps only.
     lane_map = np.repeat(maps, sizes[maps]).astype(np.uint32)
@@ -287,13 +286,13 @@ def _trace_batch(scene, lane_map, lane_index, photon_count, map_count, seed, max
         s = dr.compress(store)
         if dr.width(s) > 0:
             pos, wi, pw, nrm = _gather_all(s, hit_p, hit_wi, hit_power, normal)
-            mid = dr.gather(mi.UInt32, map_id, s)
-            dr.eval(pos, wi, pw, nrm, mid)
+            stored_map = dr.gather(mi.UInt32, map_id, s)
+            dr.eval(pos, wi, pw, nrm, stored_map)
             stored["position"].append(pos.numpy().T)
             stored["direction"].append(wi.numpy().T)
             stored["power"].append(np.atleast_2d(pw.numpy()).reshape(channels, -1).T)
             stored["normal"].append(nrm.numpy().T)
-            stored["map_id"].append(mid.numpy())
+            stored["map_id"].append(stored_map.numpy())
             stored["bounce"].append(np.full(dr.width(s), min(bounce, 65535), np.uint16))
         if last:
             break

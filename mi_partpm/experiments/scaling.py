@@ -5,7 +5,7 @@ each P (with the ``mpiexec`` beside the running Python, i.e. the venv's, else th
 reads the figures each run writes with ``--stats-json`` and tabulates time, speedup and
 efficiency per P, and the gather's share. Every image is compared with the P = 1 image.
 
-It then runs the reduction micro-benchmark (:mod:`mi_partpm.reducebench`) on each P, fits its
+It then runs the reduction micro-benchmark (:mod:`.reducebench`) on each P, fits its
 two-regime alpha-beta lines (:mod:`hwsim.collective`) and predicts each P's render time as the
 slowest rank's trace + build + estimate plus the fitted reduction of the image: the check of
 the communication model against the backend it models. ``collective.json`` holds the
@@ -16,7 +16,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -24,19 +23,11 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-__all__ = ["find_mpiexec", "run_scaling", "format_scaling"]
+from hwsim.collective import fit_collective, fit_regimes
+from ..backends import find_mpiexec
+from .reducebench import CONDITIONS, run_reduce_bench
 
-
-def find_mpiexec() -> str:
-    """The venv's ``mpiexec`` (from the ``mpich`` wheel), else the first on PATH."""
-    beside = Path(sys.executable).parent / "mpiexec"
-    if beside.is_file():
-        return str(beside)
-    found = shutil.which("mpiexec")
-    if not found:
-        raise FileNotFoundError("no mpiexec found beside Python or on PATH: install MPI with "
-                                "'pip install mpi4py mpich' (or load your cluster's MPI)")
-    return found
+__all__ = ["run_scaling", "format_scaling"]
 
 
 def _median(values):
@@ -118,8 +109,6 @@ EXTRAPOLATE_RANKS = (2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 def _predict(rows, out, mpiexec_args, repeats, say, timeout):
     """Micro-benchmark the reduction on every P in both conditions, fit it, and predict each
     row's reduction (transport alone and in situ) and render time (transport)."""
-    from hwsim.collective import fit_collective, fit_regimes
-    from .reducebench import CONDITIONS, run_reduce_bench
     info = {}
     for condition in CONDITIONS:
         benches, fits = {}, {}

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional, Tuple
@@ -23,11 +22,14 @@ import mitsuba as mi
 import numpy as np
 
 from . import figures, metrics
-from .kdtree import knn_query, radius_query
-from .photonmap import PhotonMaps, fixed_radius
-from .scenes import load_scene
+from ..eyepath import first_hits
+from ..kdtree import knn_query, radius_query
+from ..photonmap import PhotonMaps, fixed_radius
+from ..props import check_choice, check_float, check_int
+from ..scenes import check_scene, load_scene
+from ..timing import timed
 
-__all__ = ["CompareSettings", "camera_hits", "calibrate_k", "run_compare", "format_table"]
+__all__ = ["CompareSettings", "calibrate_k", "run_compare", "format_table"]
 
 log = logging.getLogger("mi_partpm")
 
@@ -50,48 +52,26 @@ class CompareSettings:
     extra: dict = field(default_factory=dict)   # further scene parameters
 
     def check(self):
-        def positive_int(name, value, high=None):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1 \
-                    or (high is not None and value > high):
-                allowed = f"in [1, {high}]" if high is not None else ">= 1"
-                raise ValueError(f"{name} must be an integer {allowed}, got {value!r}")
-        positive_int("photons", self.photons)
-        positive_int("maps", self.maps, self.photons)
-        positive_int("spp", self.spp)
-        positive_int("reference_spp", self.reference_spp)
+        """Raise a ValueError naming the first bad setting."""
+        check_int("photons", self.photons, low=1)
+        check_int("maps", self.maps, low=1, high=self.photons)
+        check_int("spp", self.spp, low=1)
+        check_int("reference_spp", self.reference_spp, low=1)
         if len(self.resolution) != 2:
             raise ValueError(f"resolution must be (width, height), got {self.resolution!r}")
         for v in self.resolution:
-            positive_int("resolution", v)
+            check_int("resolution", v, low=1)
         if min(self.resolution) < 7:
             raise ValueError(f"resolution must be at least 7x7 (SSIM's window), got "
                              f"{self.resolution[0]}x{self.resolution[1]}")
-        if not 0 < self.radius_fraction <= 1:
-            raise ValueError(f"radius_fraction must be in (0, 1], got {self.radius_fraction}")
+        check_float("radius_fraction", self.radius_fraction, low=0.0, high=1.0)
         if self.k is not None:
-            positive_int("k", self.k, self.photons)
-        if self.direct not in ("photons", "nee"):
-            raise ValueError(f"direct must be 'photons' or 'nee', got {self.direct!r}")
+            check_int("k", self.k, low=1, high=self.photons)
+        check_choice("direct", self.direct, ("photons", "nee"))
 
 
-def camera_hits(scene: mi.Scene, size: int = 64, seed: int = 0) -> mi.Point3f:
-    """Where the camera's rays first meet a surface with a non-delta BSDF.
-
-    One ray through a random point of each pixel of a ``size`` x ``size`` grid over the film:
-    the query points the density estimate sees most (before mirrors and glass).
-    """
-    sensor = scene.sensors()[0]
-    rng = np.random.default_rng(seed)
-    u = (np.arange(size * size) % size + rng.random(size * size)) / size
-    v = (np.arange(size * size) // size + rng.random(size * size)) / size
-    uv = mi.Point2f(mi.Float(u.astype(np.float32)), mi.Float(v.astype(np.float32)))
-    ray, _ = sensor.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
-    si = scene.ray_intersect(ray)
-    bsdf = si.bsdf(ray)
-    ok = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-    keep = np.flatnonzero(ok.numpy())
-    p = np.array(si.p)[:, keep]
-    return mi.Point3f(p[0], p[1], p[2])
+#: Query points used to calibrate k: the camera's first hits, at most this many.
+CALIBRATION_POINTS = 4096
 
 
 def calibrate_k(maps: PhotonMaps, points: mi.Point3f, radius: float, tolerance: float = 0.02,
@@ -105,7 +85,7 @@ def calibrate_k(maps: PhotonMaps, points: mi.Point3f, radius: float, tolerance: 
     if dr.width(points) == 0 or maps.photon_count == 0:
         raise ValueError("cannot calibrate k: no camera ray meets a lit non-delta surface")
     forest = maps.forest
-    _, stats = radius_query(forest, points, radius, lambda i, a: mi.Float(0.0),
+    _, stats = radius_query(forest, points, radius, lambda i, d2, a: mi.Float(0.0),
                             with_stats=True)
     k = int(np.clip(round(float(dr.mean(mi.Float(stats.photons_found))[0])), 1,
                     maps.photon_count))
@@ -126,11 +106,7 @@ def calibrate_k(maps: PhotonMaps, points: mi.Point3f, radius: float, tolerance: 
 
 def _render(scene, desc, seed):
     integrator = mi.load_dict(desc)
-    t0 = time.perf_counter()
-    image = mi.render(scene, integrator=integrator, seed=seed)
-    dr.eval(image)
-    dr.sync_thread()
-    seconds = time.perf_counter() - t0
+    image, seconds = timed(lambda: mi.render(scene, integrator=integrator, seed=seed))
     return np.array(image, dtype=np.float64)[..., :3], integrator, seconds
 
 
@@ -154,23 +130,20 @@ def run_compare(settings: CompareSettings, out_dir, progress=print) -> dict:
     s = settings
     scene = load_scene(s.scene, resolution=s.resolution, spp=s.spp, data_dir=s.data_dir,
                        **s.extra)
-    if not scene.emitters():
-        raise ValueError(f"scene {s.scene!r} has no emitter: nothing would be lit")
+    check_scene(scene, s.scene)
     radius = fixed_radius(scene, None, s.radius_fraction)
     common = {"photon_count": s.photons, "seed": s.seed, "direct": s.direct}
-
-    pm_desc = {"type": "pm", **common, "k": s.k or 1}
     k, calibrated_r = s.k, None
     if k is None:
         say(f"[1/4] calibrating k: mean kNN radius close to r = {radius:.4g} ...")
-        maps = mi.load_dict(pm_desc).build_maps(scene)
-        k, calibrated_r = calibrate_k(maps, camera_hits(scene), radius)
+        maps = mi.load_dict({"type": "pm", **common, "k": 1}).build_maps(scene)
+        k, calibrated_r = calibrate_k(maps, first_hits(
+            scene, spp=1, seed=s.seed, max_depth=1, limit=CALIBRATION_POINTS)[0].p, radius)
         del maps
         say(f"      k = {k} (mean kNN radius {calibrated_r:.4g} at the camera's hits)")
-    pm_desc["k"] = k
 
     say(f"[2/4] pm: one map, {s.photons} photons, k = {k} ...")
-    img_pm, pm, t_pm = _render(scene, pm_desc, s.seed)
+    img_pm, pm, t_pm = _render(scene, {"type": "pm", **common, "k": k}, s.seed)
     say(f"[3/4] partpm: {s.maps} maps, r = {radius:.4g} ...")
     img_part, part, t_part = _render(
         scene, {"type": "partpm", **common, "map_count": s.maps,
@@ -180,10 +153,7 @@ def run_compare(settings: CompareSettings, out_dir, progress=print) -> dict:
                            data_dir=s.data_dir, **s.extra)
     img_ref, _, t_ref = _render(ref_scene, {"type": "path", "max_depth": -1}, s.seed + 1)
 
-    for name, img in (("pm", img_pm), ("partpm", img_part), ("reference", img_ref)):
-        _write(out, name, img)
-    pairs = {"partpm_vs_pm": (img_part, img_pm), "pm_vs_reference": (img_pm, img_ref),
-             "partpm_vs_reference": (img_part, img_ref)}
+    images = {"pm": img_pm, "partpm": img_part, "reference": img_ref}
     result = {
         "settings": {**asdict(s), "resolution": list(s.resolution), "k": k},
         "radius": radius,
@@ -194,32 +164,41 @@ def run_compare(settings: CompareSettings, out_dir, progress=print) -> dict:
         "seconds": {"pm": t_pm, "partpm": t_part, "reference": t_ref,
                     "pm_estimate": pm.stats["time_estimate"],
                     "partpm_estimate": part.stats["time_estimate"]},
-        "metrics": {name: metrics.compare_images(a, b) for name, (a, b) in pairs.items()},
     }
+    _report(out, s, images, result)
+    return result
+
+
+#: The pairs compared: name -> (image, the image it is compared with), as keys of ``images``.
+PAIRS = {"partpm_vs_pm": ("partpm", "pm"), "pm_vs_reference": ("pm", "reference"),
+         "partpm_vs_reference": ("partpm", "reference")}
+
+
+def _report(out: Path, s: CompareSettings, images: dict, result: dict):
+    """Metrics of every pair into ``result``; images, heat maps, the sheet and metrics.json."""
+    for name, img in images.items():
+        _write(out, name, img)
+    pairs = {name: (images[a], images[b]) for name, (a, b) in PAIRS.items()}
+    result["metrics"] = {name: metrics.compare_images(a, b) for name, (a, b) in pairs.items()}
     vmax = figures.difference_range(*[figures.luminance(a) - figures.luminance(b)
                                       for a, b in pairs.values()])
-    titles = {"partpm_vs_pm": "partpm - pm", "pm_vs_reference": "pm - reference",
-              "partpm_vs_reference": "partpm - reference"}
-    for name, (a, b) in pairs.items():
-        m = result["metrics"][name]
-        figures.save_heatmap(out / f"diff_{name.replace('_vs_', '_')}.png", a, b,
-                             f"{titles[name]} (relMSE {m['rel_mse']:.4f}, "
-                             f"SSIM {m['ssim']:.3f})", vmax)
     mp = result["metrics"]
+    for name, (a, b) in pairs.items():
+        title = " - ".join(PAIRS[name])
+        figures.save_heatmap(out / f"diff_{name.replace('_vs_', '_')}.png", a, b,
+                             f"{title} (relMSE {mp[name]['rel_mse']:.4f}, "
+                             f"SSIM {mp[name]['ssim']:.3f})", vmax)
+    k, radius = result["settings"]["k"], result["radius"]
     figures.save_comparison(
         out / "comparison.png",
-        {f"conventional pm (k = {k})": img_pm,
-         f"proposed partpm (n = {s.maps}, r = {radius:.3g})": img_part,
-         f"path tracer, {s.reference_spp} spp": img_ref},
-        {f"partpm - pm\nrelMSE {mp['partpm_vs_pm']['rel_mse']:.4f}": pairs["partpm_vs_pm"],
-         f"pm - reference\nrelMSE {mp['pm_vs_reference']['rel_mse']:.4f}":
-             pairs["pm_vs_reference"],
-         f"partpm - reference\nrelMSE {mp['partpm_vs_reference']['rel_mse']:.4f}":
-             pairs["partpm_vs_reference"]},
+        {f"conventional pm (k = {k})": images["pm"],
+         f"proposed partpm (n = {s.maps}, r = {radius:.3g})": images["partpm"],
+         f"path tracer, {s.reference_spp} spp": images["reference"]},
+        {f"{' - '.join(PAIRS[name])}\nrelMSE {mp[name]['rel_mse']:.4f}": pairs[name]
+         for name in PAIRS},
         vmax, suptitle=f"{s.scene}: {s.photons} photons, {s.resolution[0]}x{s.resolution[1]}, "
                        f"{s.spp} spp")
     (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
-    return result
 
 
 def format_table(result: dict) -> str:

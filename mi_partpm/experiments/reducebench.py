@@ -1,16 +1,16 @@
 """Micro-benchmark of the one collective the MPI backend does: MPI_Reduce (sum, float32).
 
-Run under MPI (``mpiexec -n P python -m mi_partpm.reducebench --out F.json``) or through
-:func:`run_reduce_bench`. For every message size it times, on rank 0, the backend's own
-:func:`mi_partpm.mpi.reduce_image` (``MPI_Reduce`` after an ``MPI_Barrier``), and with P >= 2 a
+Run under MPI (``mpiexec -n P python -m mi_partpm.experiments.reducebench --out F.json``) or
+through :func:`run_reduce_bench`. For every message size it times, on rank 0, the backend's own
+:func:`mi_partpm.backends.reduce_image` (``MPI_Reduce`` after an ``MPI_Barrier``), and with P >= 2 a
 ping-pong between ranks 0 and 1 (half the round trip). Medians over the repeats go to a JSON
 file that :func:`hwsim.collective.fit_collective` fits.
 
 Two conditions: ``transport`` measures MPI alone; ``in_situ`` first gives every rank Dr.Jit's
-thread pool as the backend does (:func:`mi_partpm.mpi.share_cores`) and runs a Dr.Jit kernel
+thread pool as the backend does (:func:`mi_partpm.backends.share_cores`) and runs a Dr.Jit kernel
 before each timed reduction, as the backend's reduction follows its estimate kernels. When the
 ranks and their pools oversubscribe the cores, the scheduler then delays the reduction by whole
-time slices, which the transport alone never shows. No Mitsuba is imported.
+time slices, which the transport alone never shows. No Mitsuba kernel runs.
 """
 from __future__ import annotations
 
@@ -25,7 +25,9 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["SIZES", "measure", "run_reduce_bench"]
+from ..backends import find_mpiexec
+
+__all__ = ["SIZES", "CONDITIONS", "measure", "run_reduce_bench"]
 
 #: Message sizes in bytes: 4 B to 16 MiB in steps of 4x (a 480x480 RGB image is 2.76 MB).
 SIZES = tuple(4 ** i for i in range(1, 13))
@@ -45,12 +47,12 @@ def _drjit_work():
 def measure(comm, sizes: Sequence[int] = SIZES, repeats: int = 15, warmup: int = 2,
             condition: str = "transport") -> dict:
     """Median seconds of Reduce and of a one-way ping-pong for each size (on rank 0)."""
-    from .mpi import reduce_image
+    from ..backends import reduce_image
     if condition not in CONDITIONS:
         raise ValueError(f"condition must be one of {', '.join(CONDITIONS)}, got {condition!r}")
     work = None
     if condition == "in_situ":
-        from .mpi import share_cores
+        from ..backends import share_cores
         share_cores(comm)
         work = _drjit_work
     out = {"ranks": comm.size, "condition": condition, "sizes": [], "reduce": [],
@@ -88,9 +90,8 @@ def measure(comm, sizes: Sequence[int] = SIZES, repeats: int = 15, warmup: int =
 def run_reduce_bench(ranks: int, out_json, repeats: int = 15, mpiexec_args=(),
                      timeout: float = 600, condition: str = "transport") -> dict:
     """Run :func:`measure` on ``ranks`` ranks with the venv's ``mpiexec``; return its JSON."""
-    from .scaling import find_mpiexec
     cmd = [find_mpiexec(), *mpiexec_args, "-n", str(ranks), sys.executable, "-m",
-           "mi_partpm.reducebench", "--repeats", str(repeats), "--condition", condition,
+           "mi_partpm.experiments.reducebench", "--repeats", str(repeats), "--condition", condition,
            "--out", str(out_json)]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
                           env=os.environ.copy())
@@ -101,7 +102,7 @@ def run_reduce_bench(ranks: int, out_json, repeats: int = 15, mpiexec_args=(),
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m mi_partpm.reducebench",
+    parser = argparse.ArgumentParser(prog="python -m mi_partpm.experiments.reducebench",
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--condition", choices=CONDITIONS, default="transport")
@@ -109,7 +110,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be >= 1, got {args.repeats}")
-    from .mpi import comm_world
+    from ..backends import comm_world
     comm = comm_world()
     result = measure(comm, repeats=args.repeats, condition=args.condition)
     if comm.rank == 0:

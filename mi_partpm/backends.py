@@ -1,0 +1,209 @@
+"""Where the n maps run: this process, or the ranks of an MPI job. One object, chosen once.
+
+:class:`LocalBackend` owns every map. With :class:`MPIBackend`, rank j of P owns maps j, j+P,
+j+2P, ... It traces exactly those maps' photons from their own random streams (the stream of
+map i depends on (seed, i) only, never on P), builds their trees and evaluates them at the
+eye-ray hits, which every rank generates identically. The ranks' partial images are summed by
+one ``MPI_Reduce`` to rank 0. No rank holds another's photons.
+
+The integrators talk to a backend only through :class:`Backend`'s methods, so the phases have
+no MPI branches. mpi4py is imported only when the MPI backend is used; ``pip install mpi4py
+mpich`` gives a working ``mpiexec`` from PyPI, and a cluster's own MPI works the same.
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+import sys
+import time
+import traceback
+from contextlib import contextmanager, nullcontext
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["Backend", "LocalBackend", "MPIBackend", "make_backend", "BACKENDS", "comm_world",
+           "owned_maps", "check_ranks", "reduce_image", "abort_on_error", "share_cores",
+           "find_mpiexec", "MPIUnavailable"]
+
+log = logging.getLogger("mi_partpm")
+
+#: The values of the ``backend`` prop.
+BACKENDS = ("local", "mpi")
+
+
+class MPIUnavailable(RuntimeError):
+    """backend='mpi' was asked for, but mpi4py (or an MPI library) is not installed."""
+
+
+def comm_world():
+    """``MPI.COMM_WORLD``, or a clear error when MPI is missing."""
+    try:
+        from mpi4py import MPI
+    except ImportError as e:
+        raise MPIUnavailable(
+            f"backend 'mpi' needs mpi4py and an MPI library ({e}); install them with "
+            f"'pip install mpi4py mpich' (or use your cluster's MPI) and start the job with "
+            f"mpiexec -n P") from None
+    return MPI.COMM_WORLD
+
+
+def share_cores(comm) -> int:
+    """Give each rank its share of this machine's cores for Dr.Jit's thread pool.
+
+    Ranks on the same node would otherwise each start one thread per core. Never fewer than
+    2: with a pool of one thread (Dr.Jit 1.5), writing a ``mi.Bitmap`` deadlocks. Returns the
+    thread count set (left alone when ``DRJIT_NUM_THREADS`` is set).
+    """
+    import os
+
+    import drjit as dr
+    from mpi4py import MPI
+    if os.environ.get("DRJIT_NUM_THREADS"):
+        return dr.thread_count()
+    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+    threads = max(2, (os.cpu_count() or 1) // node.size)
+    node.Free()
+    dr.set_thread_count(threads)
+    return threads
+
+
+def check_ranks(ranks: int, map_count: int):
+    """P must not exceed n: a rank without a map would have nothing to do."""
+    if ranks > map_count:
+        raise ValueError(f"the MPI job has {ranks} ranks but map_count is {map_count}: every "
+                         f"rank owns at least one map, so use at most {map_count} ranks or "
+                         f"raise map_count to >= {ranks}")
+
+
+def owned_maps(rank: int, ranks: int, map_count: int) -> np.ndarray:
+    """The maps of rank ``rank`` of ``ranks``: rank, rank + ranks, ... (round robin)."""
+    return np.arange(rank, map_count, ranks, dtype=np.int64)
+
+
+def reduce_image(comm, image: np.ndarray):
+    """Sum every rank's partial image onto rank 0 (one MPI_Reduce).
+
+    Returns ``(total, wait, seconds, nbytes)``: the summed image on rank 0 (None elsewhere),
+    the time this rank waited for the slowest one (a barrier first, so that the reduction's
+    own time is not mixed with load imbalance), the time of the reduction itself and the bytes
+    this rank sent.
+    """
+    from mpi4py import MPI
+    send = np.ascontiguousarray(image, dtype=np.float32)
+    recv = np.empty_like(send) if comm.rank == 0 else None
+    t0 = time.perf_counter()
+    comm.Barrier()
+    t1 = time.perf_counter()
+    comm.Reduce(send, recv, op=MPI.SUM, root=0)
+    return recv, t1 - t0, time.perf_counter() - t1, int(send.nbytes)
+
+
+@contextmanager
+def abort_on_error(comm):
+    """Turn an exception on one rank into an abort of the whole job with that rank's message.
+
+    Without it the other ranks would wait in the reduction forever.
+    """
+    try:
+        yield
+    except Exception as e:   # noqa: BLE001  (any failure must end the job)
+        last = traceback.format_exception_only(type(e), e)[-1].strip()
+        print(f"partpm: error on MPI rank {comm.rank} of {comm.size}: {last}", file=sys.stderr,
+              flush=True)
+        # Give mpiexec a moment to forward the message before the abort tears the job down.
+        time.sleep(1.0)
+        comm.Abort(1)
+        raise
+
+
+def find_mpiexec() -> str:
+    """The venv's ``mpiexec`` (from the ``mpich`` wheel), else the first on PATH."""
+    beside = Path(sys.executable).parent / "mpiexec"
+    if beside.is_file():
+        return str(beside)
+    found = shutil.which("mpiexec")
+    if not found:
+        raise FileNotFoundError("no mpiexec found beside Python or on PATH: install MPI with "
+                                "'pip install mpi4py mpich' (or load your cluster's MPI)")
+    return found
+
+
+class Backend:
+    """Where the maps of a render run. Subclasses: :class:`LocalBackend`, :class:`MPIBackend`.
+
+    Attributes
+    ----------
+    name : str
+        The ``backend`` prop's value.
+    emission_weight : float
+        Weight of the terms that do not come from the photon maps (emission, direct light):
+        1 on exactly one process of a render, 0 elsewhere, so the partial images add up.
+    """
+
+    name = "local"
+    emission_weight = 1.0
+
+    def owned_maps(self, map_count: int) -> np.ndarray:
+        """The maps this process traces, builds and queries."""
+        return np.arange(map_count)
+
+    def running(self):
+        """Context for a render: what to do when it fails."""
+        return nullcontext()
+
+    def gather(self, image, stats: dict):
+        """Sum the processes' partial images (eq. 2's gather); return what this process
+        returns from ``render()``. ``stats`` is updated with the gather's figures."""
+        return image
+
+    @property
+    def is_root(self) -> bool:
+        """Whether this process returns (and writes) the whole image."""
+        return True
+
+
+class LocalBackend(Backend):
+    """Every map in this process; Dr.Jit spreads each kernel over the cores (or the GPU)."""
+
+
+class MPIBackend(Backend):
+    """Rank j of P owns maps j, j+P, ...; one ``MPI_Reduce`` to rank 0 is the gather."""
+
+    name = "mpi"
+
+    def __init__(self, map_count: int):
+        self.comm = comm_world()
+        check_ranks(self.comm.size, map_count)
+        share_cores(self.comm)
+        self.emission_weight = 1.0 if self.comm.rank == 0 else 0.0
+
+    @property
+    def is_root(self) -> bool:
+        return self.comm.rank == 0
+
+    def owned_maps(self, map_count: int) -> np.ndarray:
+        return owned_maps(self.comm.rank, self.comm.size, map_count)
+
+    def running(self):
+        return abort_on_error(self.comm)
+
+    def gather(self, image, stats: dict):
+        import mitsuba as mi
+        total, wait, seconds, nbytes = reduce_image(self.comm, np.array(image))
+        stats.update(time_wait=wait, time_reduce=seconds, reduce_bytes=nbytes,
+                     rank=self.comm.rank, ranks=None)
+        log.info("reduce: %d bytes to rank 0 (%.3f s, after waiting %.3f s)", nbytes, seconds,
+                 wait)
+        ranks = self.comm.gather(dict(stats), root=0)   # reporting only
+        if not self.is_root:
+            return image
+        # Rank 0 reports the whole job; its own figures stay in ranks[0].
+        stats.update(ranks=ranks, photons_stored=sum(r["photons_stored"] for r in ranks),
+                     map_bytes=sum(r["map_bytes"] for r in ranks))
+        return mi.TensorXf(total)
+
+
+def make_backend(name: str, map_count: int) -> Backend:
+    """The backend called ``name`` (one of :data:`BACKENDS`) for ``map_count`` maps."""
+    return MPIBackend(map_count) if name == "mpi" else LocalBackend()

@@ -1,0 +1,43 @@
+"""The ``partpm`` command.
+
+    partpm render SCENE [options] -o OUT.exr     render with partpm, pm or Mitsuba's path
+    partpm compare SCENE [options] --out DIR     pm vs partpm vs a path-traced reference
+    partpm speedup SCENE [options] --out DIR     the paper's speedup experiment (figures 5-6)
+    partpm bench [options]                       kd-tree and tracer against scipy, pykdtree
+                                                 and Mitsuba's path tracer
+    partpm hwsim WORKLOAD_DIR [options] --out DIR   the PE-array simulator
+    partpm scaling SCENE [options] --out DIR     strong scaling of the MPI backend
+
+SCENE is a built-in scene name (``partpm render --list``) or a Mitsuba XML file; ``partpm
+COMMAND --help`` lists a command's options (:mod:`.parser`). ``render`` is :mod:`.render`, the
+others :mod:`.experiments`. Errors end with one line on stderr and exit status 2.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+
+from .common import UsageError, parse_resolution
+from .experiments import run_bench, run_compare, run_hwsim, run_scaling, run_speedup
+from .parser import build_parser
+from .render import format_ranks, run_render
+
+__all__ = ["main", "parse_resolution", "format_ranks"]
+
+#: Subcommand -> the function that runs it.
+COMMANDS = {"render": run_render, "compare": run_compare, "speedup": run_speedup,
+            "bench": run_bench, "hwsim": run_hwsim, "scaling": run_scaling}
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING if getattr(args, "quiet", False) else logging.INFO,
+                        format="%(message)s", stream=sys.stderr)
+    try:
+        return COMMANDS[args.command](args)
+    except UsageError as e:
+        print(f"partpm: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("partpm: interrupted", file=sys.stderr)
+        return 130

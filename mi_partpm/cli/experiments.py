@@ -1,0 +1,97 @@
+"""The experiment subcommands: ``compare``, ``speedup``, ``bench``, ``hwsim``, ``scaling``.
+
+Each reads its options, calls the experiment in :mod:`mi_partpm.experiments` (or
+:mod:`hwsim.report`), prints its table and says what it wrote.
+"""
+from __future__ import annotations
+
+from .common import UsageError, int_list, last_line, progress, setup
+
+__all__ = ["run_compare", "run_speedup", "run_bench", "run_hwsim", "run_scaling"]
+
+
+def run_compare(args) -> int:
+    if not setup(args):
+        return 0
+    from ..experiments.compare import CompareSettings, format_table, run_compare
+    if not args.out:
+        raise UsageError("compare needs --out DIR")
+    settings = CompareSettings(
+        scene=args.scene, maps=args.maps or 8, photons=args.photons,
+        resolution=args.resolution or (480, 480), spp=args.spp or 4,
+        reference_spp=args.reference_spp, radius_fraction=args.radius_fraction, k=args.k,
+        seed=args.seed, direct=args.direct, data_dir=args.data)
+    try:
+        settings.check()
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    try:
+        result = run_compare(settings, args.out, progress=progress(args))
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(last_line(e)) from None
+    if not args.quiet:
+        print(format_table(result))
+        print(f"wrote    {args.out}/ (comparison.png, metrics.json, images and heat maps)")
+    return 0
+
+
+def run_bench(args) -> int:
+    setup(args)
+    from ..experiments.bench import format_bench, run_bench
+    sizes = dict(photons=args.photons, resolution=args.resolution, repeats=args.repeats)
+    if args.smoke:
+        sizes = dict(photons=5000, resolution=(32, 32), repeats=1, big=20_000, huge=100_000,
+                     trace_photons_count=20_000, path_spp=2)
+    result = run_bench(args.out, args.scene, progress=progress(args), **sizes)
+    print(format_bench(result))
+    if args.out:
+        print(f"wrote    {args.out}")
+    return 0
+
+
+def run_hwsim(args) -> int:
+    from hwsim.config import load_config
+    from hwsim.report import format_report, run_report
+    try:
+        config = load_config(args.config)
+        result = run_report(args.workloads, config, args.out, args.check,
+                            progress=progress(args))
+    except (OSError, ValueError) as e:
+        raise UsageError(str(e)) from None
+    if not args.quiet:
+        print(format_report(result))
+        print(f"wrote    {args.out}/report.json, report.csv, sweep.csv, contention.csv, "
+              f"sensitivity.csv, hwsim.png")
+    return 0
+
+
+def run_speedup(args) -> int:
+    setup(args)
+    from ..experiments.speedup import format_speedup, run_speedup
+    maps = int_list("--maps", args.maps)
+    try:
+        result = run_speedup(args.scene, maps, args.out, args.photons, args.resolution,
+                             args.spp, args.repeats, args.radius_fraction, args.seed,
+                             args.data, progress=progress(args))
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(str(e)) from None
+    if not args.quiet:
+        print(format_speedup(result))
+        print(f"wrote    {args.out}/speedup.csv, speedup.json, speedup.png and workloads/")
+    return 0
+
+
+def run_scaling(args) -> int:
+    from ..experiments.scaling import format_scaling, run_scaling
+    ranks = int_list("--ranks", args.ranks)
+    extra = ["-f", args.hostfile] if args.hostfile else []
+    try:
+        rows = run_scaling(args.scene, ranks, args.maps, args.out, args.photons,
+                           args.resolution, args.spp, args.repeats, args.data, extra,
+                           progress=progress(args), bench_repeats=args.bench_repeats)
+    except (FileNotFoundError, ValueError, RuntimeError) as e:
+        raise UsageError(str(e)) from None
+    if not args.quiet:
+        print(format_scaling(rows))
+        print(f"wrote    {args.out}/scaling.csv, scaling.json and collective.json")
+    return 0

@@ -1,0 +1,132 @@
+"""The ``partpm`` command line: every subcommand's options."""
+from __future__ import annotations
+
+import argparse
+
+from .common import parse_resolution, positive_float, positive_int
+
+__all__ = ["build_parser"]
+
+
+def _scene_options(p, maps_default=8):
+    """Options shared by the subcommands that render a scene."""
+    p.add_argument("scene", nargs="?", help="built-in scene name or Mitsuba XML file")
+    p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
+    p.add_argument("--maps", type=positive_int("--maps"),
+                   help=f"number of partial photon maps n (default {maps_default})")
+    p.add_argument("--photons", type=positive_int("--photons"), default=100_000,
+                   help="photons emitted in total N (default 100000)")
+    p.add_argument("--k", type=positive_int("--k"),
+                   help="photons per kNN estimate of pm")
+    p.add_argument("--direct", choices=("photons", "nee"), default="photons",
+                   help="direct light from the maps (paper) or by emitter sampling")
+    p.add_argument("--spp", type=positive_int("--spp"), help="samples per pixel")
+    p.add_argument("--resolution", type=parse_resolution, help="film size WxH, e.g. 480x480")
+    p.add_argument("--seed", type=int, default=0, help="seed of photons and eye samples")
+    p.add_argument("--data", metavar="DIR",
+                   help="directory of scene data such as happy_buddha_20k.ply "
+                        "(default: $PARTPM_DATA, else the package's copy)")
+    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
+    p.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
+
+def _size_options(p, spp, repeats, repeats_help):
+    """The workload-size options of the experiment commands (paper sizes by default)."""
+    p.add_argument("--photons", type=positive_int("--photons"), default=100_000,
+                   help="photons emitted N (default 100000)")
+    p.add_argument("--resolution", type=parse_resolution, default=(480, 480),
+                   help="film size WxH (default 480x480)")
+    if spp is not None:
+        p.add_argument("--spp", type=positive_int("--spp"), default=spp,
+                       help=f"samples per pixel (default {spp})")
+    p.add_argument("--repeats", type=positive_int("--repeats"), default=repeats,
+                   help=f"{repeats_help}; medians are reported (default {repeats})")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="partpm", description=(
+        "Partitioned photon maps for Mitsuba 3 (Tamura, Takizawa, Kobayashi)."))
+    sub = parser.add_subparsers(dest="command", required=True)
+    _render_options(sub)
+    _experiment_options(sub)
+    return parser
+
+
+def _render_options(sub):
+    r = sub.add_parser("render", help="render a scene with partpm, pm or Mitsuba's path tracer")
+    _scene_options(r)
+    r.add_argument("--integrator", choices=("partpm", "pm", "path"), default="partpm")
+    g = r.add_mutually_exclusive_group()
+    g.add_argument("--radius", type=positive_float("--radius"),
+                   help="search radius in world units (partpm)")
+    g.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
+                   help="radius as a fraction of the scene's longest side (default 0.05)")
+    r.add_argument("--max-radius", type=positive_float("--max-radius"),
+                   help="cap of the kNN radius (pm; default: none)")
+    r.add_argument("--max-depth", type=int, default=-1, help="longest path (-1: unlimited)")
+    r.add_argument("--backend", choices=("local", "mpi"), default="local",
+                   help="where the maps run: this process, or the ranks of an MPI job "
+                        "(mpiexec -n P partpm render ... --backend mpi)")
+    r.add_argument("--stats-json", metavar="FILE",
+                   help="also write the run's figures (per rank with --backend mpi) as JSON")
+    r.add_argument("-o", "--output", help="output EXR file (a PNG is written beside it)")
+
+
+def _experiment_options(sub):
+    c = sub.add_parser("compare", help="pm vs partpm vs a path-traced reference "
+                                       "(the paper's figures 7-12)")
+    _scene_options(c)
+    c.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
+                   default=0.05, help="r as a fraction of the scene's longest side "
+                                      "(default 0.05, the paper's 1/20)")
+    c.add_argument("--reference-spp", type=positive_int("--reference-spp"), default=512,
+                   help="samples per pixel of the path-traced reference (default 512)")
+    c.add_argument("--out", help="output directory")
+
+    e = sub.add_parser("speedup", help="the paper's experiment: per-map density-estimation "
+                                       "time vs the number of maps (figures 5-6)")
+    e.add_argument("scene", help="built-in scene name or Mitsuba XML file")
+    e.add_argument("--maps", default="1,2,4,8,16,32",
+                   help="comma-separated map counts n (default 1,2,4,8,16,32)")
+    _size_options(e, spp=1, repeats=3, repeats_help="timed passes over every map")
+    e.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
+                   default=0.05, help="r as a fraction of the scene's longest side (0.05)")
+    e.add_argument("--seed", type=int, default=0, help="photon seed (default 0)")
+    e.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
+    e.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
+    e.add_argument("--out", required=True, help="output directory (CSV, JSON, plot, workloads)")
+    e.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
+    b = sub.add_parser("bench", help="kd-tree and tracer benchmarks against scipy, pykdtree "
+                                     "and Mitsuba's path tracer")
+    b.add_argument("--scene", default="cornell_box", help="scene (default cornell_box)")
+    _size_options(b, spp=None, repeats=5, repeats_help="timed runs of every benchmark")
+    b.add_argument("--smoke", action="store_true",
+                   help="tiny sizes: checks that every benchmark runs, measures nothing")
+    b.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
+    b.add_argument("--out", help="write the table as JSON to this file")
+    b.add_argument("-q", "--quiet", action="store_true", help="print only the table")
+
+    h = sub.add_parser("hwsim", help="simulate a PE array on the workloads of 'partpm speedup'")
+    h.add_argument("workloads", help="a workloads/ directory written by 'partpm speedup'")
+    h.add_argument("--config", help="hardware configuration (TOML; every key, unit and default "
+                                     "in hwsim/default.toml)")
+    h.add_argument("--check", metavar="WORKLOAD_DIR",
+                   help="another scene's workloads: predict its measured per-map times with "
+                        "the costs calibrated on 'workloads'")
+    h.add_argument("--out", required=True, help="output directory (JSON, CSV, plots)")
+    h.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
+    m = sub.add_parser("scaling", help="strong scaling of the MPI backend over P ranks")
+    m.add_argument("scene", help="built-in scene name or Mitsuba XML file")
+    m.add_argument("--ranks", default="1,2", help="comma-separated rank counts P (default 1,2)")
+    m.add_argument("--maps", type=positive_int("--maps"), default=8,
+                   help="number of partial photon maps n (default 8)")
+    _size_options(m, spp=4, repeats=3, repeats_help="runs per P")
+    m.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
+    m.add_argument("--hostfile", help="MPI hostfile, passed to mpiexec -f (clusters)")
+    m.add_argument("--bench-repeats", type=positive_int("--bench-repeats"), default=15,
+                   help="timed reductions per message size in the micro-benchmark that fits "
+                        "the alpha-beta model (default 15)")
+    m.add_argument("--out", required=True, help="output directory (CSV, JSON, images)")
+    m.add_argument("-q", "--quiet", action="store_true", help="print only errors")

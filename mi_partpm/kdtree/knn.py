@@ -1,0 +1,247 @@
+"""The k-nearest-neighbour query over a forest: the conventional estimate of eq. (1).
+
+The walk is the stackless traversal of :mod:`.radius`, visiting the nearer child first, with a
+per-lane max-heap of the k best candidates in local memory.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .forest import Forest
+from .radius import ASCEND, DESCEND, SCAN, QueryStats, coordinate, walk_start
+
+__all__ = ["knn_query", "KnnResult", "knn_neighbours"]
+
+
+@dataclass
+class KnnResult:
+    """Result of :func:`knn_query`, one entry per query point.
+
+    Attributes
+    ----------
+    total : result_type
+        Sum of ``contribution`` over the neighbours found.
+    radius2 : mi.Float
+        Squared search radius at the end: the squared distance to the k-th nearest photon when
+        k were found within ``max_radius``, else ``max_radius**2``.
+    count : mi.UInt32
+        Neighbours found (k, or fewer when fewer lie within ``max_radius``).
+    stats : QueryStats or None
+        Traversal counts, when asked for.
+    """
+
+    total: object
+    radius2: object
+    count: object
+    stats: object = None
+
+
+def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
+              max_radius=None, active=True, maps=None, with_stats: bool = False,
+              neighbours: bool = False):
+    """The ``k`` photons nearest to each query point, and the sum of their contributions.
+
+    Parameters
+    ----------
+    forest : Forest
+        The photon maps; with several maps, the k nearest over all of them (or ``maps``).
+    p : mi.Point3f
+        Query points, one per lane.
+    k : int
+        Neighbours wanted, >= 1.
+    contribution : callable(index, dist2, active) -> result_type, optional
+        Summed over the neighbours found, as in :func:`~.radius.radius_query`.
+    result_type : Dr.Jit array type
+        Type of ``contribution``'s results (default: ``mi.Float``).
+    max_radius : float or mi.Float, optional
+        Only photons within this distance count (Jensen's cap). Default: unbounded.
+    active : mi.Bool
+        Lanes to query.
+    maps : tuple (first, stop), optional
+        Search only maps ``first .. stop-1`` (default: all).
+    with_stats : bool
+        Also record the traversal counts (:class:`QueryStats`).
+    neighbours : bool
+        Also return the neighbours: two lists of k arrays, squared distances and tree-order
+        indices; unused entries hold ``inf`` and ``0xFFFFFFFF``.
+
+    Returns
+    -------
+    KnnResult, or (KnnResult, dist2 list, index list) with ``neighbours=True`` (the lists in
+    heap order; :func:`knn_neighbours` sorts them).
+
+    Notes
+    -----
+    The walk is the stackless traversal of :func:`radius_query`, visiting the nearer child
+    first, with a per-lane max-heap of the k best candidates in local memory. The search
+    radius starts at ``max_radius`` and shrinks to the heap's largest distance once it holds
+    k photons, so far subtrees are skipped as in Jensen's ``locate_photons``. Photons at
+    exactly the current radius are not taken once the heap is full (the first found stays).
+    """
+    if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
+        raise ValueError(f"k must be an integer >= 1, got {k!r}")
+    first, stop = (0, forest.map_count) if maps is None else maps
+    result_type = mi.Float if result_type is None else result_type
+    width = dr.width(p)
+    if max_radius is None:
+        r2max = dr.inf
+    elif isinstance(max_radius, (int, float)):
+        r2max = dr.opaque(mi.Float, float(max_radius) ** 2)   # no recompile per value
+    else:
+        r2max = dr.square(mi.Float(max_radius))
+    if forest.points.shape[0] == 0:
+        zeros = dr.zeros(mi.UInt32, width)
+        stats = QueryStats(zeros, mi.UInt32(zeros), mi.UInt32(zeros)) if with_stats else None
+        res = KnnResult(dr.zeros(result_type, width), dr.zeros(mi.Float, width) + r2max,
+                        mi.UInt32(zeros), stats)
+        if neighbours:
+            return (res, [dr.full(mi.Float, dr.inf, width)] * k,
+                    [dr.full(mi.UInt32, 0xFFFFFFFF, width)] * k)
+        return res
+    return _knn_walk(forest, p, int(k), contribution, result_type, r2max, active, first,
+                     stop, with_stats, neighbours)
+
+
+@dr.syntax
+def _heap_insert(heap_d, heap_i, count, ku, d2, i, push, replace):
+    """Put ``(d2, i)`` into each lane's max-heap of k entries (``count`` of them used).
+
+    ``push``: the heap has room, sift up from the end; ``replace``: the new entry replaces the
+    root (the farthest), sift down from it. Each moves parents (children) over the hole until
+    the new entry fits.
+    """
+    take = push | replace
+    pos = dr.select(push, count, 0)
+    moving = mi.Bool(take)
+    while moving:
+        up_parent = (pos - 1) >> 1
+        up = push & (pos > 0)
+        parent_d = heap_d.read(up_parent, up)
+        up = up & (parent_d < d2)
+        child = 2 * pos + 1
+        down = replace & (child < ku)
+        child_d = heap_d.read(child, down)
+        has_second = down & (child + 1 < ku)
+        second_d = heap_d.read(child + 1, has_second)
+        second = has_second & (second_d > child_d)
+        child = dr.select(second, child + 1, child)
+        child_d = dr.select(second, second_d, child_d)
+        down = down & (child_d > d2)
+        source = dr.select(up, up_parent, child)
+        move = moving & (up | down)
+        heap_d.write(heap_d.read(source, move), pos, move)
+        heap_i.write(heap_i.read(source, move), pos, move)
+        pos = dr.select(move, source, pos)
+        moving = move
+    heap_d.write(d2, pos, take)
+    heap_i.write(i, pos, take)
+
+
+@dr.syntax
+def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, stop,
+              with_stats, neighbours):
+    """Near-first stackless walk with a bounded max-heap per lane (see :func:`knn_query`)."""
+    dev = forest.device()
+    width = dr.width(p)
+    heap_d = dr.alloc_local(mi.Float, k, dr.full(mi.Float, dr.inf, width))
+    heap_i = dr.alloc_local(mi.UInt32, k, dr.full(mi.UInt32, 0xFFFFFFFF, width))
+    r2 = dr.zeros(mi.Float, width) + r2max
+    count = dr.zeros(mi.UInt32, width)
+
+    (active, m, node, mode, i, end, node_base, leaf_base, n_int, nodes_visited,
+     photons_tested) = walk_start(dev, width, first, stop, active)
+    stop_u = dr.opaque(mi.UInt32, stop)
+    ku = mi.UInt32(k)
+
+    while dr.hint(active, label="partpm_knn_query"):
+        descend = active & (mode == DESCEND)
+        scan = active & (mode == SCAN)
+        ascend = active & (mode == ASCEND)
+
+        # Descend: nearer child first, until a leaf; then scan its photons.
+        nodes_visited += dr.select(descend, 1, 0)
+        inner = descend & (node < n_int)
+        axis = dr.gather(mi.UInt32, dev["split_axis"], node_base + node, inner)
+        split = dr.gather(mi.Float, dev["split_value"], node_base + node, inner)
+        right = coordinate(p, axis) > split
+        at_leaf = descend & ~inner
+        leaf = leaf_base + (node - n_int)
+        leaf_first = dr.gather(mi.UInt32, dev["leaf_start"], leaf, at_leaf)
+        leaf_end = dr.gather(mi.UInt32, dev["leaf_start"], leaf + 1, at_leaf)
+
+        # Scan: test one photon, keep it if it beats the heap's worst (or the heap has room).
+        testing = scan & (i < end)
+        photons_tested += dr.select(testing, 1, 0)
+        q = dr.gather(mi.Point3f, dev["points"], i, testing)
+        d2 = dr.squared_norm(q - p)
+        room = count < ku
+        take = testing & dr.select(room, d2 <= r2, d2 < r2)
+        _heap_insert(heap_d, heap_i, count, ku, d2, i, take & room, take & ~room)
+        count = dr.select(take & room, count + 1, count)
+        r2 = dr.select(take & (count == ku), heap_d.read(0, take), r2)
+        i = dr.select(testing, i + 1, i)
+
+        # Ascend: after the nearer child, visit the farther one if the ball still reaches it.
+        leaving = ascend & (node != 0)
+        parent = (node - 1) >> 1
+        paxis = dr.gather(mi.UInt32, dev["split_axis"], node_base + parent, leaving)
+        psplit = dr.gather(mi.Float, dev["split_value"], node_base + parent, leaving)
+        diff = coordinate(p, paxis) - psplit
+        from_near = (node & 1) == dr.select(diff > 0, 0, 1)
+        to_far = leaving & from_near & (dr.square(diff) <= r2)
+        sibling = dr.select((node & 1) == 1, node + 1, node - 1)
+        next_map = ascend & (node == 0)
+        m = dr.select(next_map, m + 1, m)
+        more = next_map & (m < stop_u)
+        node_base = dr.select(more, dr.gather(mi.UInt32, dev["node_base"], m, more), node_base)
+        leaf_base = dr.select(more, dr.gather(mi.UInt32, dev["leaf_base"], m, more), leaf_base)
+        n_int = dr.select(more, dr.gather(mi.UInt32, dev["internal_count"], m, more), n_int)
+
+        # State transitions, all lanes at once.
+        node = dr.select(inner, 2 * node + 1 + dr.select(right, 1, 0), node)
+        node = dr.select(leaving, dr.select(to_far, sibling, parent), node)
+        i = dr.select(at_leaf, leaf_first, i)
+        end = dr.select(at_leaf, leaf_end, end)
+        mode = dr.select(at_leaf, SCAN, mode)
+        mode = dr.select(scan & ~testing, ASCEND, mode)
+        mode = dr.select(to_far | more, DESCEND, mode)
+        active = active & ~(next_map & ~more)
+
+    total = dr.zeros(result_type, width)
+    if dr.hint(contribution is not None, mode="scalar"):
+        j = mi.UInt32(0)
+        while j < count:
+            total += contribution(heap_i.read(j, j < count), heap_d.read(j, j < count),
+                                  mi.Bool(True))
+            j += 1
+    stats = QueryStats(nodes_visited, photons_tested, mi.UInt32(count))
+    res = KnnResult(total, r2, count, stats if with_stats else None)
+    # The heap's entries are read only when asked for (k lazy variables each otherwise).
+    return (res, [heap_d.read(j) for j in range(k)],
+            [heap_i.read(j) for j in range(k)]) if neighbours else res
+
+
+def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
+    """NumPy front end of :func:`knn_query`, shaped like ``scipy.spatial.cKDTree.query``.
+
+    Returns ``(distance, index)``, both ``(Q, k)`` and sorted by distance: ``index`` refers
+    to the caller's photon order (the ``points`` given to :func:`build_forest`); a missing
+    neighbour (fewer than k within ``max_radius``) has distance ``inf`` and index N.
+    """
+    q = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    p = mi.Point3f(q[:, 0], q[:, 1], q[:, 2])
+    _, d2, idx = knn_query(forest, p, k, max_radius=max_radius, neighbours=True)
+    dr.eval(d2, idx)
+    d2 = np.stack([a.numpy() for a in d2], axis=1).reshape(-1, k).astype(np.float64)
+    idx = np.stack([a.numpy() for a in idx], axis=1).reshape(-1, k).astype(np.int64)
+    order = np.argsort(d2, axis=1, kind="stable")
+    d2 = np.take_along_axis(d2, order, axis=1)
+    idx = np.take_along_axis(idx, order, axis=1)
+    n = forest.points.shape[0]
+    missing = ~np.isfinite(d2)
+    idx = np.where(missing, n, forest.order[np.minimum(idx, max(n - 1, 0))] if n else n)
+    return np.sqrt(d2), idx

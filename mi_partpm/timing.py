@@ -1,0 +1,52 @@
+"""Timing Dr.Jit work: evaluate what was asked for, wait for the kernels, read the clock.
+
+Dr.Jit records computations lazily and runs kernels asynchronously, so a timer must evaluate
+the result and synchronise before it stops. Every timed phase and benchmark in the project
+goes through :func:`timed`, :func:`median_time` or :class:`Stopwatch`.
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import drjit as dr
+import numpy as np
+
+__all__ = ["sync", "timed", "median_time", "Stopwatch"]
+
+
+def sync(*values):
+    """Evaluate ``values`` (Dr.Jit arrays or PyTrees) and wait until every kernel is done."""
+    if values:
+        dr.eval(*values)
+    dr.sync_thread()
+
+
+def timed(fn: Callable, jit: bool = True):
+    """``(fn(), seconds)``; with ``jit`` the result is evaluated inside the timed span."""
+    t0 = time.perf_counter()
+    out = fn()
+    if jit:
+        sync(out)
+    return out, time.perf_counter() - t0
+
+
+def median_time(fn: Callable, repeats: int, jit: bool = True, warmup: int = 1) -> float:
+    """Median seconds of ``fn()`` over ``repeats`` runs after ``warmup`` untimed ones (the
+    first run of a Dr.Jit kernel includes its compilation)."""
+    for _ in range(warmup):
+        timed(fn, jit)
+    return float(np.median([timed(fn, jit)[1] for _ in range(repeats)]))
+
+
+class Stopwatch:
+    """Seconds since the last :meth:`lap` (or since creation), after syncing Dr.Jit."""
+
+    def __init__(self):
+        self._last = time.perf_counter()
+
+    def lap(self, *values) -> float:
+        sync(*values)
+        now = time.perf_counter()
+        seconds, self._last = now - self._last, now
+        return seconds
