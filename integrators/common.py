@@ -22,16 +22,21 @@ import mitsuba as mi
 import numpy as np
 
 from mi_partpm import memory
-from mi_partpm.backends import LocalBackend
+from mi_partpm.backends import LocalBackend, alpha_channel
 from mi_partpm.eyepath import eye_path_radiance
 from mi_partpm.photonmap import build_photon_maps
-from mi_partpm.trace import map_sizes, trace_photons
-from mi_partpm.props import read_photon_map_params
+from mi_partpm.props import UNLIMITED_DEPTH, read_photon_map_params
+from mi_partpm.trace import map_sizes, stream_seed, trace_photons
 from mi_partpm.timing import Stopwatch
 
 log = logging.getLogger("mi_partpm")
 
 __all__ = ["PhotonMapper"]
+
+
+def _as_int(seed) -> int:
+    """``render()``'s seed as a Python int (Mitsuba may pass a 1-wide ``UInt32``)."""
+    return seed if isinstance(seed, int) else int(dr.ravel(mi.UInt32(seed))[0])
 
 
 class PhotonMapper(mi.SamplingIntegrator):
@@ -60,8 +65,9 @@ class PhotonMapper(mi.SamplingIntegrator):
         """The search radius the estimate uses (None: chosen per query)."""
         return None
 
-    def estimate(self, si, bsdf, active):
-        """Reflected radiance from the maps at the hits ``si`` (``bsdf`` there)."""
+    def estimate(self, si, bsdf, active, max_bounce=None):
+        """Reflected radiance from the maps at the hits ``si`` (``bsdf`` there), from photons
+        of at most ``max_bounce`` segments (None: any)."""
         raise NotImplementedError
 
     def before_estimate(self):
@@ -72,18 +78,27 @@ class PhotonMapper(mi.SamplingIntegrator):
 
     # ------------------------------------------------------------------ phases
 
-    def build_maps(self, scene: mi.Scene):
-        """Phases 1 and 2: trace every owned map's photons and build its kd-tree."""
+    def build_maps(self, scene: mi.Scene, sensor=0, spp: int = 0, render_seed: int = 0):
+        """Phases 1 and 2: trace every owned map's photons and build its kd-tree.
+
+        ``sensor`` and ``spp`` (0: the sensor's sampler's) size the eye pass for the memory
+        guard; ``render_seed`` is ``render()``'s seed, which selects the photon streams with
+        the ``seed`` prop (:func:`~mi_partpm.trace.stream_seed`).
+        """
         p = self.params
         self.radius = self.search_radius(scene)
         owned = self.backend.owned_maps(self.map_count)
         traced_here = int(map_sizes(p.photon_count, self.map_count)[owned].sum())
-        film = scene.sensors()[0].film().crop_size()
-        spp = scene.sensors()[0].sampler().sample_count()
+        sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        film = sensor.film().crop_size()
+        spp = int(spp) or sensor.sampler().sample_count()
+        bounded = p.max_depth != UNLIMITED_DEPTH
+        # Photon paths leave one segment at least for the eye path.
+        photon_depth = p.max_depth - 1 if bounded else UNLIMITED_DEPTH
 
         def estimate(ratio=None):
-            return memory.estimate_render(traced_here, p.max_depth, int(film[0]),
-                                          int(film[1]), int(spp), ratio)
+            return memory.estimate_render(traced_here, photon_depth, int(film[0]),
+                                          int(film[1]), spp, ratio)
         # Before any photon is traced: the estimate from the props and the film.
         memory.check_fits(estimate(), f"photon_count = {p.photon_count}")
 
@@ -93,7 +108,8 @@ class PhotonMapper(mi.SamplingIntegrator):
 
         log.info("trace: emitting %d photons into %d maps ...", p.photon_count, self.map_count)
         clock = Stopwatch()
-        photons = trace_photons(scene, p.photon_count, self.map_count, p.seed, p.max_depth,
+        photons = trace_photons(scene, p.photon_count, self.map_count,
+                                stream_seed(p.seed, render_seed), photon_depth,
                                 p.rr_depth, maps=owned,
                                 min_bounce=2 if p.direct == "nee" else 1,
                                 progress=lambda line: log.debug("trace: %s", line),
@@ -101,7 +117,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         # The owned maps become this process's maps 0 .. len(owned)-1.
         photons = photons.with_maps(np.searchsorted(owned, photons.map_id), len(owned))
         t_trace = clock.lap()
-        self.maps = build_photon_maps(photons)
+        self.maps = build_photon_maps(photons, keep_bounce=bounded)
         t_build = clock.lap(self.maps.direction32, self.maps.power)
         if len(photons) == 0:
             log.warning("no photon was stored: the scene has no surface with a non-delta "
@@ -110,6 +126,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             "photons_emitted": p.photon_count, "photons_stored": len(photons),
             "photons_traced": traced_here,
             "map_count": self.map_count, "maps_owned": owned.tolist(), "radius": self.radius,
+            "render_seed": render_seed,
             "map_bytes": self.maps.nbytes, "time_trace": t_trace, "time_build": t_build,
         }
         log.info("trace: %d photons emitted, %d stored in %d maps (%.2f s)", traced_here,
@@ -125,12 +142,17 @@ class PhotonMapper(mi.SamplingIntegrator):
         if self._rendering:
             # Mitsuba's base render() dispatches back here once: let it do the film work.
             return super().render(scene, sensor, seed, spp, develop, evaluate)
+        if not develop and self.backend.name != "local":
+            raise ValueError(f"develop=False is not supported with backend={self.backend.name!r}"
+                             f": the ranks' images are summed once developed; render with "
+                             f"develop=True")
         with self.backend.running():
-            image = self._render_here(scene, sensor, seed, spp, develop, evaluate)
-            return self.backend.gather(image, self.stats)
+            image = self._render_here(scene, sensor, _as_int(seed), spp, develop, evaluate)
+            film = (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).film()
+            return self.backend.gather(image, self.stats, alpha_channel(film))
 
     def _render_here(self, scene, sensor, seed, spp, develop, evaluate):
-        self.build_maps(scene)
+        self.build_maps(scene, sensor, spp, seed)
         self.before_estimate()
         clock = Stopwatch()
         self._rendering = True
@@ -149,9 +171,16 @@ class PhotonMapper(mi.SamplingIntegrator):
     # ------------------------------------------------------------------ per sample
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        if self.maps is None:
-            raise RuntimeError(f"{type(self).__name__}: sample() called before the photon "
-                               f"maps were built; render through render() / mi.render()")
+        if not self._rendering:
+            # Called by another integrator (moment, aov), whose render() this one never saw:
+            # build maps for this call, with the seed prop's photons.
+            if self.backend.name != "local":
+                raise ValueError(f"{type(self).__name__} with backend="
+                                 f"{self.backend.name!r} must be the scene's top-level "
+                                 f"integrator (its ranks gather whole images); use "
+                                 f"backend='local' inside moment or aov")
+            self.build_maps(scene)
+            self.before_estimate()
         p = self.params
         L, valid = eye_path_radiance(scene, sampler, ray, self.estimate, p.max_depth,
                                      p.rr_depth, p.direct == "nee", p.hide_emitters, active,

@@ -48,14 +48,18 @@ class PartPMIntegrator(PhotonMapper):
            paper uses about 1/20. Not together with radius. (Default: 0.05)
        * - max_depth
          - |int|
-         - Longest path in segments, for photon paths and eye paths alike; -1 is unlimited
-           (Russian roulette ends the paths). (Default: -1)
+         - Longest light path, in segments from the emitter to the camera, as for Mitsuba's
+           ``path``: 1 shows only emitters seen directly, 2 direct light, and so on; -1 is
+           unlimited (Russian roulette ends the paths). An estimate at the end of an eye
+           path of e segments uses only photons of at most max_depth - e. (Default: -1)
        * - rr_depth
          - |int|
          - Segment count from which Russian roulette may end a path, >= 1. (Default: 5)
        * - seed
          - |int|
-         - Seed of the photon streams; map i's stream depends on (seed, i) only. (Default: 0)
+         - Base seed of the photon streams: map i's stream depends on (seed, the seed given
+           to ``mi.render``, i) only, so renders with other seeds trace other photons and
+           average towards the converged image. (Default: 0)
        * - direct
          - |string|
          - ``photons``: the maps give all reflected light (the paper's direct visualisation);
@@ -71,7 +75,10 @@ class PartPMIntegrator(PhotonMapper):
            images onto rank 0 (P <= map_count). (Default: local)
 
     Photons are stored on surfaces with a non-delta (diffuse or glossy) lobe; mirror and glass
-    only redirect them. Eye paths follow delta lobes to the surfaces with a non-delta lobe,
+    only redirect them. Every emitter plugin of Mitsuba 3.9.1 emits photons (area, point,
+    spot, directional, directionalarea, projector, constant, envmap, sunsky). The plugin works
+    inside ``moment`` and ``aov`` (it then traces its maps with the ``seed`` prop alone), and
+    honours ``render()``'s ``sensor``, ``seed``, ``spp``, ``develop`` and ``evaluate``. Eye paths follow delta lobes to the surfaces with a non-delta lobe,
     where the estimate is taken. Photons are traced and the maps built once per ``render()``
     call. Variants: the JIT RGB and mono variants (``llvm_ad_rgb``, ``cuda_ad_rgb``, ...);
     no volumes, no spectral or polarised rendering.
@@ -99,8 +106,9 @@ class PartPMIntegrator(PhotonMapper):
     def before_estimate(self):
         log.info("estimate: radius %.4g, rendering ...", self.radius)
 
-    def estimate(self, si, bsdf, active):
-        return radiance_estimate(self.maps, si, bsdf, self.radius, active)
+    def estimate(self, si, bsdf, active, max_bounce=None):
+        return radiance_estimate(self.maps, si, bsdf, self.radius, active,
+                                 max_bounce=max_bounce)
 
     def to_string(self):
         p = self.params

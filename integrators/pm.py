@@ -81,8 +81,9 @@ class PMIntegrator(PhotonMapper):
                  "k photons)", self.stats["mean_knn_radius"], int(acc[1]),
                  100 * self.stats["capped_share"])
 
-    def estimate(self, si, bsdf, active):
-        L, res = knn_radiance_estimate(self.maps, si, bsdf, self.k, self.max_radius, active)
+    def estimate(self, si, bsdf, active, max_bounce=None):
+        L, res = knn_radiance_estimate(self.maps, si, bsdf, self.k, self.max_radius, active,
+                                       max_bounce=max_bounce)
         if self._acc is not None:
             # Side effects run with the image kernel: no second pass over the estimates.
             counted = mi.Bool(active) & dr.isfinite(res.radius2)

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["Backend", "LocalBackend", "MPIBackend", "make_backend", "BACKENDS", "comm_world",
-           "owned_maps", "check_ranks", "reduce_image", "abort_on_error", "share_cores",
-           "find_mpiexec", "MPIUnavailable"]
+           "owned_maps", "check_ranks", "reduce_image", "alpha_channel", "abort_on_error",
+           "share_cores", "find_mpiexec", "MPIUnavailable"]
 
 log = logging.getLogger("mi_partpm")
 
@@ -152,9 +152,10 @@ class Backend:
         """Context for a render: what to do when it fails."""
         return nullcontext()
 
-    def gather(self, image, stats: dict):
+    def gather(self, image, stats: dict, alpha=None):
         """Sum the processes' partial images (eq. 2's gather); return what this process
-        returns from ``render()``. ``stats`` is updated with the gather's figures."""
+        returns from ``render()``. ``alpha``: the image's alpha channel (not summed: every
+        process has the same), or None. ``stats`` is updated with the gather's figures."""
         return image
 
     @property
@@ -188,9 +189,12 @@ class MPIBackend(Backend):
     def running(self):
         return abort_on_error(self.comm)
 
-    def gather(self, image, stats: dict):
+    def gather(self, image, stats: dict, alpha=None):
         import mitsuba as mi
-        total, wait, seconds, nbytes = reduce_image(self.comm, np.array(image))
+        partial = np.array(image, dtype=np.float32)
+        if alpha is not None and not self.is_root:
+            partial[..., alpha] = 0.0       # the sum then carries rank 0's alpha only
+        total, wait, seconds, nbytes = reduce_image(self.comm, partial)
         stats.update(time_wait=wait, time_reduce=seconds, reduce_bytes=nbytes,
                      rank=self.comm.rank, ranks=None)
         log.info("reduce: %d bytes to rank 0 (%.3f s, after waiting %.3f s)", nbytes, seconds,
@@ -202,6 +206,14 @@ class MPIBackend(Backend):
         stats.update(ranks=ranks, photons_stored=sum(r["photons_stored"] for r in ranks),
                      map_bytes=sum(r["map_bytes"] for r in ranks))
         return mi.TensorXf(total)
+
+
+def alpha_channel(film):
+    """Index of the alpha channel in ``film``'s developed image, or None without alpha."""
+    import mitsuba as mi
+    if not mi.has_flag(film.flags(), mi.FilmFlags.Alpha):
+        return None
+    return film.base_channels_count() - 1
 
 
 def make_backend(name: str, map_count: int) -> Backend:

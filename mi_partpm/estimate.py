@@ -79,8 +79,16 @@ class _Estimator:
         return dr.select(self.plain, f_plain * total, total) * scale
 
 
+def _bounce_filter(maps: PhotonMaps, max_bounce):
+    """The query's ``accept``: photons of at most ``max_bounce`` segments (None: all)."""
+    if max_bounce is None or maps.bounce is None:
+        return None
+    limit = mi.UInt32(max_bounce)
+    return lambda i, active: maps.photon_bounce(i, active) <= limit
+
+
 def radiance_estimate(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius,
-                      active=True, map_range=None, with_stats: bool = False):
+                      active=True, map_range=None, with_stats: bool = False, max_bounce=None):
     """Reflected radiance towards ``si.wi`` from the photons within ``radius`` of ``si.p``.
 
     Parameters
@@ -99,24 +107,31 @@ def radiance_estimate(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radiu
         Only maps first .. stop-1: one map's partial term of eq. (2). Default: all maps.
     with_stats : bool
         Also return the traversal statistics per query.
+    max_bounce : mi.UInt32, optional
+        Only photons of at most this many segments from the emitter count (per query): the
+        rest of a ``max_depth`` not used by the eye path. Needs maps built with their bounce
+        counts. Default: every photon.
     """
     est = _Estimator(maps, si, bsdf, active)
     result = radius_query(maps.forest, si.p, radius, est.contribution, mi.Spectrum,
-                          est.active, maps=map_range, with_stats=with_stats)
+                          est.active, maps=map_range, with_stats=with_stats,
+                          accept=_bounce_filter(maps, max_bounce))
     total, stats = result if with_stats else (result, None)
     L = est.radiance(total, dr.square(mi.Float(radius)))
     return (L, stats) if with_stats else L
 
 
 def knn_radiance_estimate(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, k: int,
-                          max_radius=None, active=True, with_stats: bool = False):
+                          max_radius=None, active=True, with_stats: bool = False,
+                          max_bounce=None):
     """Conventional (Jensen) estimate: the k nearest photons, r = distance to the k-th.
 
     Returns ``(L, result)``: the radiance and the :class:`~mi_partpm.kdtree.KnnResult`
-    (``radius2`` per query: the squared kNN radius, or ``max_radius**2`` where fewer than k
-    photons lie within ``max_radius``, as in Jensen's ``locate_photons``).
+    (``radius2`` per query: the squared kNN radius; where fewer than k photons are found,
+    ``max_radius**2`` as in Jensen's ``locate_photons``, or without a cap the squared distance
+    to the farthest one found). ``max_bounce`` as in :func:`radiance_estimate`.
     """
     est = _Estimator(maps, si, bsdf, active)
     res = knn_query(maps.forest, si.p, k, est.contribution, mi.Spectrum, max_radius,
-                    est.active, with_stats=with_stats)
+                    est.active, with_stats=with_stats, accept=_bounce_filter(maps, max_bounce))
     return est.radiance(res.total, res.radius2), res

@@ -16,7 +16,7 @@ import numpy as np
 
 from .kdtree import morton_order
 
-from .props import segment_limit
+from .props import UNLIMITED_DEPTH, segment_limit
 
 __all__ = ["eye_path_radiance", "direct_light", "first_hits"]
 
@@ -40,10 +40,14 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
 
     Parameters
     ----------
-    estimate : callable(si, bsdf, active) -> mi.Spectrum
-        Reflected radiance from the photon maps at a hit.
+    estimate : callable(si, bsdf, active, max_bounce) -> mi.Spectrum
+        Reflected radiance from the photon maps at a hit, from photons of at most
+        ``max_bounce`` segments (None: any).
     max_depth : int
-        Longest eye path in segments (-1: unlimited).
+        Longest light path in segments from the emitter to the camera, as Mitsuba's ``path``
+        counts it (-1: unlimited): at a hit e segments from the camera, emission counts if
+        e <= max_depth, emitter sampling if e + 1 <= max_depth, photons of b segments if
+        e + b <= max_depth.
     rr_depth : int
         Segment count from which Russian roulette may end a delta chain.
     nee : bool
@@ -61,6 +65,7 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
     (mi.Spectrum, mi.Bool)
         The radiance and whether the camera ray hit a surface.
     """
+    bounded = max_depth != UNLIMITED_DEPTH
     max_depth = segment_limit(max_depth)
     ray = mi.Ray3f(ray)
     L = mi.Spectrum(0)
@@ -84,9 +89,11 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
         bsdf = si.bsdf(ray)
         flags = bsdf.flags()
 
-        # Density estimate (and direct light) where the BSDF has a non-delta lobe.
-        smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth)
-        L += beta * estimate(si, bsdf, smooth)
+        # Density estimate (and direct light) where the BSDF has a non-delta lobe and the
+        # path may grow by at least one more segment towards the light.
+        smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth) & (depth + 1 < max_depth)
+        max_bounce = mi.UInt32(max_depth) - (depth + 1) if bounded else None
+        L += beta * estimate(si, bsdf, smooth, max_bounce)
         if nee:
             L += beta * direct_light(scene, sampler, si, bsdf, smooth) * emission
 

@@ -35,15 +35,25 @@ class PhotonMaps:
         Every photon's power (float32), in tree order.
     emitted : int
         N, the photons emitted over all maps (powers are already divided by it).
+    bounce : mi.UInt32 or None
+        Segments from the emitter to each photon, in tree order, kept only when the render
+        bounds the light path's length (``max_depth``): an estimate at the end of an eye path
+        of e segments may use only photons of at most ``max_depth - e`` segments.
 
     A photon record on the device is 12 (position, in the forest) + 4 (direction) + 12
-    (power, RGB) bytes; the surface normal stays on the host (the estimate does not use it).
+    (power, RGB) bytes, and 4 more with ``bounce``; the surface normal stays on the host
+    (the estimate does not use it).
     """
 
     forest: Forest
     direction32: object
     power: object
     emitted: int
+    bounce: object = None
+
+    def photon_bounce(self, index, active=True):
+        """Segments from the emitter of the photons at tree-order ``index``."""
+        return dr.gather(mi.UInt32, self.bounce, index, active)
 
     def photon_power(self, index, active=True):
         """The power of the photons at tree-order ``index`` as ``mi.Spectrum``."""
@@ -62,15 +72,15 @@ class PhotonMaps:
         """Photons stored over all maps."""
         return int(self.forest.points.shape[0])
 
-    @staticmethod
-    def bytes_per_photon() -> int:
+    @property
+    def bytes_per_photon(self) -> int:
         """Bytes of one photon record on the device (see :func:`record_bytes`)."""
-        return record_bytes()
+        return record_bytes(self.bounce is not None)
 
     @property
     def map_bytes(self):
         """Bytes of each map: its photon records plus its tree."""
-        return self.forest.photon_count.astype(np.int64) * record_bytes() + \
+        return self.forest.photon_count.astype(np.int64) * self.bytes_per_photon + \
             self.forest.map_nbytes
 
     @property
@@ -79,11 +89,12 @@ class PhotonMaps:
         return int(self.map_bytes.sum())
 
 
-def record_bytes() -> int:
+def record_bytes(with_bounce: bool = False) -> int:
     """Bytes of one photon record on the device: position and power (float32, one float per
-    colour channel of the variant), direction (2 x 16 bits)."""
+    colour channel of the variant), direction (2 x 16 bits), and the bounce count (uint32)
+    when the path length is bounded."""
     channels = mi.Spectrum.Size if hasattr(mi.Spectrum, "Size") else 3
-    return 12 + 4 + 4 * channels
+    return 12 + 4 + 4 * channels + (4 if with_bounce else 0)
 
 
 def map_bytes(photon_counts, leaf_size: int = LEAF_SIZE):
@@ -117,8 +128,10 @@ def decode_direction(code):
     return dr.normalize(mi.Vector3f(x, y, z))
 
 
-def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE) -> PhotonMaps:
-    """Build the kd-tree of every map of ``photons`` and upload the attributes."""
+def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE,
+                      keep_bounce: bool = False) -> PhotonMaps:
+    """Build the kd-tree of every map of ``photons`` and upload the attributes (with
+    ``keep_bounce``, also each photon's segment count)."""
     forest = build_forest(photons.position, photons.map_id.astype(np.int64),
                           photons.map_count, leaf_size)
     order = forest.order
@@ -129,7 +142,9 @@ def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE) -> PhotonMap
         spectrum = mi.Spectrum(power[:, 0])
     return PhotonMaps(forest=forest,
                       direction32=mi.UInt32(encode_direction(photons.direction[order])),
-                      power=spectrum, emitted=photons.emitted)
+                      power=spectrum, emitted=photons.emitted,
+                      bounce=mi.UInt32(photons.bounce[order].astype(np.uint32))
+                      if keep_bounce else None)
 
 
 def fixed_radius(scene: mi.Scene, radius, radius_fraction: float) -> float:

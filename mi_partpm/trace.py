@@ -23,7 +23,8 @@ from .memory import TRACE_BATCH
 from .props import segment_limit
 from .scenes import check_scene
 
-__all__ = ["Photons", "map_sizes", "map_seeds", "trace_photons", "check_emitters"]
+__all__ = ["Photons", "map_sizes", "map_seeds", "stream_seed", "trace_photons", "check_emitters",
+           "emit"]
 
 
 @dataclass
@@ -96,6 +97,21 @@ def _splitmix64(x: np.ndarray) -> np.ndarray:
     return (x ^ (x >> np.uint64(31))).astype(np.uint64)
 
 
+def stream_seed(seed: int, render_seed: int = 0, pass_index: int = 0) -> int:
+    """The seed of a render's photon streams: the ``seed`` prop for render seed 0 and pass 0,
+    else a hash of (seed, render seed, pass), so every ``mi.render(..., seed=s)`` and every
+    progressive pass traces other photons."""
+    if render_seed == 0 and pass_index == 0:
+        return int(seed)
+    with np.errstate(over="ignore"):
+        x = _splitmix64(np.array([int(seed) & 0xFFFFFFFFFFFFFFFF], dtype=np.uint64))
+        x = _splitmix64(x ^ np.uint64((int(render_seed) * 0x9E3779B97F4A7C15)
+                                      & 0xFFFFFFFFFFFFFFFF))
+        x = _splitmix64(x ^ np.uint64((int(pass_index) * 0xC2B2AE3D27D4EB4F)
+                                      & 0xFFFFFFFFFFFFFFFF))
+    return int(x[0])
+
+
 def map_seeds(seed: int, map_count: int) -> np.ndarray:
     """The random-stream state of each map: a hash of (seed, map index) and nothing else."""
     with np.errstate(over="ignore"):
@@ -108,13 +124,42 @@ def _gather_all(idx, *values):
 
 
 def _emitter_name(emitter) -> str:
-    """How to name an emitter in a message: its shape's id, its own id, or its type."""
+    """How to name an emitter in a message: its shape's id or its own id, and its type."""
     shape = emitter.get_shape() if hasattr(emitter, "get_shape") else None
     if shape is not None:
-        return f"on shape {shape.id()!r}" if shape.id() else "on an unnamed shape"
-    if emitter.id():
-        return repr(emitter.id())
-    return str(emitter).split("[")[0].strip()
+        where = f"on shape {shape.id()!r}" if shape.id() else "on an unnamed shape"
+    else:
+        where = repr(emitter.id()) if emitter.id() else "(unnamed)"
+    return f"{where} ({emitter.class_name()})"
+
+
+#: Emitters whose ``sample_ray`` power disagrees with what ``sample_direction`` (and so
+#: Mitsuba's ``path``) shows when their ``to_world`` has a scale s: the projector returns
+#: directions of length s and irradiance s times that of its unscaled ``sample_ray`` power.
+#: Scaling the photon's power by the length before normalising makes the two agree.
+SCALED_BY_DIRECTION_LENGTH = ("Projector",)
+
+
+def _emitter_table(scene: mi.Scene):
+    """Per emitter registry id: 1 where the photon power scales with |ray.d|."""
+    ids = dr.reinterpret_array(mi.UInt32, scene.emitters_dr()).numpy()
+    table = np.zeros(int(ids.max()) + 1 if ids.size else 1, dtype=np.uint32)
+    for emitter, i in zip(scene.emitters(), ids):
+        table[i] = emitter.class_name() in SCALED_BY_DIRECTION_LENGTH
+    return mi.UInt32(table)
+
+
+def emit(scene: mi.Scene, rng, photon_count: int, table):
+    """Photon rays leaving the scene's emitters, with unit directions, and their power over
+    ``photon_count`` (one emitter chosen per photon by the scene, as ``path`` does)."""
+    ray, weight, emitter = scene.sample_emitter_ray(
+        mi.Float(0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
+        mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True))
+    length = dr.norm(ray.d)
+    scaled = dr.gather(mi.UInt32, table, dr.reinterpret_array(mi.UInt32, emitter)) == 1
+    power = mi.Spectrum(weight) * dr.select(scaled, length, 1.0) / float(photon_count)
+    ray.d = ray.d / dr.select(length > 0, length, 1.0)
+    return ray, power
 
 
 def check_emitters(scene: mi.Scene, samples: int = 1024):
@@ -231,11 +276,7 @@ def _trace_batch(scene, lane_map, lane_index, photon_count, map_count, seed, max
     rng.seed(dr.gather(mi.UInt64, mi.UInt64(map_seeds(seed, map_count)), map_id),
              mi.UInt64(lane_index))
 
-    active = mi.Bool(True)
-    ray, emitted_weight, _ = scene.sample_emitter_ray(
-        mi.Float(0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
-        mi.Point2f(rng.next_float32(), rng.next_float32()), active)
-    power = mi.Spectrum(emitted_weight) / float(photon_count)
+    ray, power = emit(scene, rng, photon_count, _emitter_table(scene))
     active = dr.any(power != 0) & dr.all(dr.isfinite(power))
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
 

@@ -13,7 +13,7 @@ from mi_partpm.cli import main
 from mi_partpm.experiments.compare import CompareSettings, run_compare
 from mi_partpm.data import PACKAGE_DATA, MissingDataError, find_data_file
 from mi_partpm.experiments.figures import save_heatmap
-from test_render import sphere_scene
+from test_render import small_scene, sphere_scene
 
 
 # ---------------------------------------------------------------- pm, the kNN photon mapper
@@ -52,6 +52,46 @@ def test_pm_max_radius_caps_the_estimate():
     assert pm.stats["capped_share"] == 1.0
     assert abs(pm.stats["mean_knn_radius"] - 0.1) < 1e-6
     np.testing.assert_allclose(a, b, rtol=1e-4)
+
+
+def lit_plane():
+    """One diffuse plane under a point light: 1000 photons emitted store about 180."""
+    return small_scene([0, 0, 3], [0, 0, 0], size=16, spp=2,
+                       plane={"type": "rectangle", "bsdf": {"type": "diffuse"}},
+                       light={"type": "point", "position": [0, 0, 1],
+                              "intensity": {"type": "rgb", "value": 2.0}})
+
+
+def test_pm_with_fewer_than_k_photons_uses_the_ones_it_found():
+    """k = 1000 with about 180 photons stored: every estimate uses all photons found, with r
+    the distance to the farthest (Jensen's estimate with fewer than k), instead of a black
+    image; capped_share counts those estimates. Every photon is then spread over a disc that
+    reaches the farthest one, larger than the 2 x 2 plane (radius 1.4 from its centre, 2.8
+    from a corner), so the image is dimmer than path's: measured 0.37 of its mean. The bound
+    0.2-1 admits that and fails a black image or one that ignores the radius."""
+    scene = lit_plane()
+    integrator = mi.load_dict({"type": "pm", "photon_count": 1000, "k": 1000})
+    img = render(scene, integrator)
+    ref = render(scene, mi.load_dict({"type": "path", "max_depth": 2}), spp=64)
+    stored = integrator.stats["photons_stored"]
+    ratio = img.mean() / ref.mean()
+    print(f"{stored} photons stored, mean / path {ratio:.3f}, capped share "
+          f"{integrator.stats['capped_share']:.3f}")
+    assert 100 < stored < 1000
+    assert integrator.stats["capped_share"] == 1.0
+    assert 0.2 < ratio < 1.0
+    inside = ref > 0.05          # pixels wholly on the plane (edge pixels are part sky)
+    assert np.all(img[inside] > 0), "an estimate with photons found is black"
+
+
+def test_pm_max_radius_with_fewer_than_k_photons_uses_max_radius():
+    """With a cap, r = max_radius where fewer than k photons lie within it (Jensen's
+    locate_photons): the estimate is then partpm's fixed-radius one on the same photons."""
+    scene = lit_plane()
+    pm = mi.load_dict({"type": "pm", "photon_count": 1000, "k": 1000, "max_radius": 0.5})
+    part = mi.load_dict({"type": "partpm", "photon_count": 1000, "radius": 0.5})
+    np.testing.assert_allclose(render(scene, pm), render(scene, part), rtol=1e-4, atol=1e-7)
+    assert pm.stats["capped_share"] == 1.0 and abs(pm.stats["mean_knn_radius"] - 0.5) < 1e-6
 
 
 @pytest.mark.parametrize("props, message", [

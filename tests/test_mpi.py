@@ -54,6 +54,38 @@ def test_mpi_two_ranks_give_the_local_image(tmp_path, direct):
     assert "reduce MB" in done.stdout   # the per-rank table
 
 
+def test_mpi_sums_radiance_but_not_alpha(tmp_path):
+    """With an RGBA film the ranks' alpha is not summed (it would be P x alpha): the MPI image,
+    alpha included, is the local one."""
+    import mi_partpm
+    src = mi_partpm.scenes.scene_path("cornell_box").read_text()
+    film = '<film type="hdrfilm">'
+    assert film in src
+    xml = tmp_path / "rgba.xml"
+    xml.write_text(src.replace(film, film + '<string name="pixel_format" value="rgba"/>'))
+    args = [str(xml), "--maps", "2", "--photons", "5000", "--resolution", "16x16", "--spp",
+            "1"]
+    local, out = tmp_path / "local.exr", tmp_path / "mpi.exr"
+    assert main(["render", *args, "-q", "-o", str(local)]) == 0
+    done = _mpi(2, "-m", "mi_partpm.cli", "render", *args, "--backend", "mpi", "-q", "-o",
+                str(out))
+    assert done.returncode == 0, done.stderr
+    a, b = _exr(local), _exr(out)
+    assert a.shape[2] == 4 and a[..., 3].max() == 1.0
+    np.testing.assert_array_equal(b[..., 3], a[..., 3])
+    np.testing.assert_allclose(b[..., :3], a[..., :3], rtol=1e-5, atol=1e-6)
+
+
+def test_mpi_backend_refuses_develop_false():
+    from mi_partpm.backends import Backend
+    integrator = mi.load_dict({"type": "partpm", "map_count": 2})
+    integrator.backend = type("FakeMPI", (Backend,), {"name": "mpi"})()
+    scene = mi.load_dict({"type": "scene", "sensor": {"type": "perspective"},
+                          "light": {"type": "constant"}})
+    with pytest.raises(ValueError, match="develop=False is not supported with backend='mpi'"):
+        integrator.render(scene, develop=False)
+
+
 def test_mpi_more_ranks_than_maps_is_a_clear_error(tmp_path):
     done = _mpi(3, "-m", "mi_partpm.cli", "render", "cornell_box", "--maps", "2",
                 "--resolution", "8x8", "--backend", "mpi", "-o", str(tmp_path / "x.exr"))

@@ -55,7 +55,7 @@ def _root(e):
      'value="nowhere/mesh.ply"/></shape></scene>', r'mesh.ply.*file not found'),
     ('<scene version="3.0.0"><sensor type="perspective"/><shape type="rectangle" id="lamp">'
      '<emitter type="area"><rgb name="radiance" value="-1, 1, 1"/></emitter></shape></scene>',
-     r"emitter on shape 'lamp' emits negative power"),
+     r"emitter on shape 'lamp' \(AreaLight\) emits negative power"),
     ('<scene version="3.0.0"><shape type="rectangle"><emitter type="area"/></shape></scene>',
      r"has no sensor"),
 ])

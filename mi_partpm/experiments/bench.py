@@ -12,7 +12,9 @@ prints a ratio against its named baseline and its target:
 - all 32 maps answered one after another vs one map with all photons (target: at most 2x,
   i.e. per-map speedup >= 16), and the same ratio for one cKDTree per map (count only);
 - photon tracing, ray segments per second, vs Mitsuba's ``path`` (target: >= 0.8x);
-- bytes per stored photon including its tree, for 10^6 and 10^7 photons (target: <= 32).
+- bytes per stored photon including its tree, for 10^6 and 10^7 photons (target: <= 32);
+- photons traced per second for every kind of emitter Mitsuba ships, against an area light
+  (target: none more than 5x slower).
 """
 from __future__ import annotations
 
@@ -187,6 +189,26 @@ def _bench_tracing(b: _Bench, scene_name, resolution, count, path_spp):
           unit="M segments/s")
 
 
+def _bench_emitters(b: _Bench, count: int):
+    """7. Photons emitted and traced per second, per kind of emitter (the floor of
+    :mod:`mi_partpm.scenes.emitters`), against the rectangular area light."""
+    import tempfile
+    from ..scenes.emitters import EMITTER_KINDS, emitter_scene, write_textures
+    rates = {}
+    with tempfile.TemporaryDirectory() as folder:
+        textures = write_textures(folder)
+        for kind in EMITTER_KINDS:
+            scene = emitter_scene(kind, textures)
+            seconds = median_time(lambda: trace_photons(scene, count, 1, 0), b.repeats,
+                                  jit=False)
+            rates[kind] = count / seconds
+    area = rates["area_rectangle"]
+    for kind, rate in rates.items():
+        if kind != "area_rectangle":
+            b.row(f"emitting, {kind}", rate / 1e6, area / 1e6, "area light (rectangle)", 0.2,
+                  rate / area, "photons/s over the area light's", unit="M photons/s")
+
+
 def run_bench(out_json=None, scene_name: str = "cornell_box", photons: int = 100_000,
               resolution=(480, 480), repeats: int = 5, big: int = 1_000_000,
               huge: int = 10_000_000, trace_photons_count: int = 1_000_000,
@@ -197,6 +219,7 @@ def run_bench(out_json=None, scene_name: str = "cornell_box", photons: int = 100
     _bench_builds(b, big)
     _bench_maps_in_turn(b)
     _bench_tracing(b, scene_name, resolution, trace_photons_count, path_spp)
+    _bench_emitters(b, trace_photons_count)
     # 6. Memory per stored photon, record and tree.
     for count in (big, huge):
         per_photon = float(map_bytes([count])[0]) / count

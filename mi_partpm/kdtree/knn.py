@@ -27,7 +27,8 @@ class KnnResult:
         Sum of ``contribution`` over the neighbours found.
     radius2 : mi.Float
         Squared search radius at the end: the squared distance to the k-th nearest photon when
-        k were found within ``max_radius``, else ``max_radius**2``.
+        k were found; with fewer, ``max_radius**2`` when a cap was given, else the squared
+        distance to the farthest photon found (0 when none was).
     count : mi.UInt32
         Neighbours found (k, or fewer when fewer lie within ``max_radius``).
     stats : QueryStats or None
@@ -42,7 +43,7 @@ class KnnResult:
 
 def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
               max_radius=None, active=True, maps=None, with_stats: bool = False,
-              neighbours: bool = False):
+              neighbours: bool = False, accept=None):
     """The ``k`` photons nearest to each query point, and the sum of their contributions.
 
     Parameters
@@ -65,6 +66,8 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         Search only maps ``first .. stop-1`` (default: all).
     with_stats : bool
         Also record the traversal counts (:class:`QueryStats`).
+    accept : callable(index, active) -> mi.Bool, optional
+        Which photons may be neighbours at all (default: every photon).
     neighbours : bool
         Also return the neighbours: two lists of k arrays, squared distances and tree-order
         indices; unused entries hold ``inf`` and ``0xFFFFFFFF``.
@@ -103,7 +106,7 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
                     [dr.full(mi.UInt32, 0xFFFFFFFF, width)] * k)
         return res
     return _knn_walk(forest, p, int(k), contribution, result_type, r2max, active, first,
-                     stop, with_stats, neighbours)
+                     stop, with_stats, neighbours, accept)
 
 
 @dr.syntax
@@ -143,7 +146,7 @@ def _heap_insert(heap_d, heap_i, count, ku, d2, i, push, replace):
 
 @dr.syntax
 def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, stop,
-              with_stats, neighbours):
+              with_stats, neighbours, accept):
     """Near-first stackless walk with a bounded max-heap per lane (see :func:`knn_query`)."""
     dev = forest.device()
     width = dr.width(p)
@@ -180,6 +183,8 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
         d2 = dr.squared_norm(q - p)
         room = count < ku
         take = testing & dr.select(room, d2 <= r2, d2 < r2)
+        if dr.hint(accept is not None, mode="scalar"):
+            take &= accept(i, take)
         _heap_insert(heap_d, heap_i, count, ku, d2, i, take & room, take & ~room)
         count = dr.select(take & room, count + 1, count)
         r2 = dr.select(take & (count == ku), heap_d.read(0, take), r2)
@@ -211,6 +216,10 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
         mode = dr.select(to_far | more, DESCEND, mode)
         active = active & ~(next_map & ~more)
 
+    if dr.hint(isinstance(r2max, float), mode="scalar"):
+        # No cap: fewer than k photons exist, and r is the distance to the farthest found
+        # (the heap's root), as Jensen's estimate with fewer than k photons has it.
+        r2 = dr.select(count < ku, dr.select(count > 0, heap_d.read(0, count > 0), 0.0), r2)
     total = dr.zeros(result_type, width)
     if dr.hint(contribution is not None, mode="scalar"):
         j = mi.UInt32(0)

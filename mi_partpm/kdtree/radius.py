@@ -35,7 +35,7 @@ def coordinate(p, axis):
 
 
 def radius_query(forest: Forest, p, r, contribution, result_type=None, active=True,
-                 maps=None, with_stats: bool = False):
+                 maps=None, with_stats: bool = False, accept=None):
     """Sum, over the photons within distance ``r`` of each query point, ``contribution``.
 
     Parameters
@@ -59,6 +59,9 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
         gathered estimate of eq. (2); one map alone is its partial term.
     with_stats : bool
         Also return a :class:`QueryStats` with per-lane traversal counts.
+    accept : callable(index, active) -> mi.Bool, optional
+        Which photons may count at all (e.g. those of few enough bounces); a photon it
+        rejects is tested but not found. Default: every photon.
 
     Returns
     -------
@@ -73,7 +76,8 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
         stats = QueryStats(zeros, mi.UInt32(zeros), mi.UInt32(zeros))
         total = dr.zeros(result_type, width)
         return (total, stats) if with_stats else total
-    return _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats)
+    return _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats,
+                 accept)
 
 
 def walk_start(dev, width, first, stop, active):
@@ -96,7 +100,7 @@ def walk_start(dev, width, first, stop, active):
 
 
 @dr.syntax
-def _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats):
+def _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats, accept):
     """The stackless traversal behind :func:`radius_query`, one lane per query point."""
     dev = forest.device()
     width = dr.width(p)
@@ -127,6 +131,8 @@ def _walk(forest, p, r, contribution, result_type, active, first, stop, with_sta
                 q = dr.gather(mi.Point3f, dev["points"], i)
                 dist2 = dr.squared_norm(q - p)
                 found = dist2 <= r2
+                if dr.hint(accept is not None, mode="scalar"):
+                    found &= accept(i, found)
                 if found:
                     photons_found += 1
                     total += contribution(i, dist2, found)

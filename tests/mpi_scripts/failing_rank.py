@@ -10,7 +10,7 @@ scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=1)
 integrator = mi.load_dict({"type": "partpm", "photon_count": 2000, "map_count": 2,
                            "backend": "mpi"})
 if MPI.COMM_WORLD.rank == 1:
-    def broken(scene):
+    def broken(scene, *args):
         raise MemoryError("cannot allocate the photon map (simulated)")
     integrator.build_maps = broken
 mi.render(scene, integrator=integrator)

@@ -1,0 +1,143 @@
+"""partpm and pm behave like Mitsuba integrators: max_depth, the render seed, nested use
+(moment, aov) and every argument of render() mean what they mean for Mitsuba's ``path``."""
+import numpy as np
+import pytest
+
+import mitsuba as mi
+
+import mi_partpm
+from conftest import render
+from mi_partpm.memory import MemoryGuardError
+from test_render import small_scene
+
+T = mi.ScalarTransform4f
+
+
+def closed_room():
+    """A closed diffuse room (albedo 0.7) under a point light, seen from inside: every
+    segment count of the light paths carries much of the image, so a depth convention that is
+    off by one is far off in brightness."""
+    return small_scene(
+        [0, 0, 0.9], [0, 0, -1], size=32, spp=4, fov=70,
+        box={"type": "cube", "flip_normals": True,
+             "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.7}}},
+        light={"type": "point", "position": [0.2, 0.5, -0.3], "intensity": 3.0})
+
+
+@pytest.fixture(scope="module")
+def room():
+    return closed_room()
+
+
+# Measured (200k photons, 16 spp, path at 512 spp): partpm / path 1.016, 1.008, 1.005, 1.000
+# at max_depth 2, 3, 4, -1; pm (k = 100) 1.022, 1.014, 1.012, 1.010. What is left is the fixed
+# and kNN radii reaching around the room's corners. Counting the photon and eye paths apart
+# (as before) gave 1.30 at max_depth 3: the 3% bound separates the two conventions by far.
+@pytest.mark.parametrize("depth", [2, 3, 4, -1])
+@pytest.mark.parametrize("kind", ["partpm", "pm"])
+def test_max_depth_is_the_light_path_length_as_in_path(room, depth, kind):
+    ref = render(room, mi.load_dict({"type": "path", "max_depth": depth}), seed=3, spp=512)
+    desc = {"type": kind, "photon_count": 200_000, "max_depth": depth}
+    if kind == "pm":
+        desc["k"] = 100
+    img = render(room, mi.load_dict(desc), spp=16)
+    ratio = img.mean() / ref.mean()
+    print(f"{kind} max_depth {depth}: mean / path {ratio:.4f}")
+    assert abs(ratio - 1) < 0.03, ratio
+
+
+def test_max_depth_one_shows_only_emitters(room):
+    """max_depth 1: only what the camera sees of the emitters (here: nothing, a point light)."""
+    img = render(room, mi.load_dict({"type": "partpm", "photon_count": 2000, "max_depth": 1}))
+    assert np.all(img == 0)
+
+
+def test_render_seed_selects_the_photons_and_seeds_average_towards_the_converged_image():
+    """mi.render(seed=s) traces other photons for another s (the seed prop stays the base):
+    the mean of 8 renders with 3,000 photons each is 8 times closer (in MSE) to the converged
+    image of the same radius than one render. Measured ratio 0.13 (1/8 = 0.125); with the
+    same photons for every seed it stays near 1, since then only the eye samples average."""
+    scene = mi_partpm.load_scene("cornell_box_diffuse", resolution=(16, 16), spp=16)
+    desc = {"type": "partpm", "photon_count": 3000, "radius": 0.2, "hide_emitters": True}
+    converged = render(scene, mi.load_dict({**desc, "photon_count": 1_000_000}), spp=256)
+    integrators = [mi.load_dict(desc) for _ in range(8)]
+    images = [render(scene, integrator, seed=s) for s, integrator in enumerate(integrators, 1)]
+    assert [i.stats["render_seed"] for i in integrators] == list(range(1, 9))
+    single = np.mean([np.mean((img - converged) ** 2) for img in images])
+    averaged = np.mean((np.mean(images, axis=0) - converged) ** 2)
+    print(f"MSE of one render {single:.3g}, of the mean of 8 {averaged:.3g}, "
+          f"ratio {averaged / single:.3f}")
+    assert averaged < 0.3 * single
+    # The seed prop is the base: the same (seed, render seed) gives the same image.
+    assert np.array_equal(images[0], render(scene, mi.load_dict(desc), seed=1))
+
+
+@pytest.mark.parametrize("kind", ["partpm", "pm"])
+def test_inside_moment_and_aov_the_image_is_the_same_as_alone(kind):
+    scene = mi_partpm.load_scene("cornell_box", resolution=(24, 24), spp=2)
+    desc = {"type": kind, "photon_count": 20_000}
+    alone = render(scene, mi.load_dict(desc))
+    moment = np.array(mi.render(scene, integrator=mi.load_dict(
+        {"type": "moment", "nested": desc})), dtype=np.float64)
+    aov = np.array(mi.render(scene, integrator=mi.load_dict(
+        {"type": "aov", "aovs": "dd.y:depth", "nested": desc})), dtype=np.float64)
+    assert alone.mean() > 0.05
+    assert moment.shape[2] == 9 and np.array_equal(moment[..., :3], alone)
+    assert aov.shape[2] == 4 and np.array_equal(aov[..., :3], alone)
+    assert np.all(moment[..., 6:9] >= 0)      # the second moments are there
+
+
+def test_mpi_backend_inside_a_wrapper_says_what_to_do(monkeypatch):
+    integrator = mi.load_dict({"type": "partpm"})
+    monkeypatch.setattr(integrator.backend, "name", "mpi")
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    sampler = scene.sensors()[0].sampler()
+    sampler.seed(0, 64)
+    ray = mi.Ray3f(mi.Point3f(0, 0, 3.9), mi.Vector3f(0, 0, -1))
+    with pytest.raises(ValueError, match="top-level integrator .* use backend='local' inside "
+                                         "moment or aov"):
+        integrator.sample(scene, sampler, ray)
+
+
+def two_sensor_scene():
+    """The Cornell box with a second camera of a much larger film."""
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    params = {"type": "scene", "first": scene.sensors()[0],
+              "second": {"type": "perspective", "fov": 40,
+                         "to_world": T().look_at(origin=[0, 0, 3.9], target=[0, 0, 0],
+                                                 up=[0, 1, 0]),
+                         "film": {"type": "hdrfilm", "width": 2000, "height": 2000}}}
+    for i, shape in enumerate(scene.shapes()):
+        params[f"shape{i}"] = shape
+    return mi.load_dict(params)
+
+
+def test_memory_guard_uses_the_sensor_and_spp_given_to_render(monkeypatch):
+    """The guard sizes the eye pass from render()'s sensor and spp, not the first sensor's
+    film and sample count: 8x8 at 1 spp fits in 30 MB, 8x8 at 10^5 spp or a 2000x2000 film
+    at 1 spp (about 800 MB of eye pass each) does not."""
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "30e6")
+    scene = two_sensor_scene()
+    desc = {"type": "partpm", "photon_count": 1000}
+    assert render(scene, mi.load_dict(desc)).shape == (8, 8, 3)
+    for kwargs in ({"spp": 100_000}, {"sensor": 1}):
+        with pytest.raises(Exception) as e:
+            mi.render(scene, integrator=mi.load_dict(desc), **kwargs)
+        assert isinstance(_root(e.value), MemoryGuardError), kwargs
+        assert "eye pass" in str(_root(e.value))
+
+
+def _root(e):
+    while e.__cause__ is not None:
+        e = e.__cause__
+    return e
+
+
+def test_develop_false_leaves_the_image_in_the_film():
+    scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=1)
+    desc = {"type": "partpm", "photon_count": 5000}
+    developed = np.array(mi.load_dict(desc).render(scene, seed=4))
+    empty = mi.load_dict(desc).render(scene, seed=4, develop=False)
+    assert empty.array.shape == (0,) or np.array(empty).size == 0
+    film = np.array(scene.sensors()[0].film().develop())
+    assert developed.mean() > 0.05 and np.array_equal(film, developed)
