@@ -1,33 +1,44 @@
 """What ``partpm`` and ``pm`` share: the photon-mapping integrator base, :class:`PhotonMapper`.
 
-A render is a fixed sequence of phases (the paper's figure 4):
+A render is a fixed sequence of phases, repeated once per pass (the paper's figure 4 is one
+pass):
 
-1. trace: the photons of the maps this process owns (:mod:`mi_partpm.trace`);
+1. trace: the photons of the maps this process owns, from the streams of (seed, render seed,
+   pass, map) (:mod:`mi_partpm.trace`);
 2. build: one kd-tree per map (:mod:`mi_partpm.photonmap`);
-3. estimate: eye paths to the non-delta surfaces and the density estimate there
-   (:mod:`mi_partpm.eyepath`, :mod:`mi_partpm.estimate`), through Mitsuba's own film loop;
-4. gather: the backend sums the processes' partial images (:mod:`mi_partpm.backends`).
+3. eye: one eye path per pixel sample, through delta bounces to its visible points
+   (:mod:`mi_partpm.eyepath`, the camera of :mod:`mi_partpm.camera`);
+4. estimate: the density estimate at every visible point, in Morton order
+   (:mod:`mi_partpm.estimate`), summed onto its eye path;
+5. gather: the backend sums the paths' flux and photon counts over the processes
+   (:mod:`mi_partpm.backends`), and every path's statistics are updated
+   (:mod:`mi_partpm.progressive`).
 
-A subclass says how the radiance at a hit is estimated (:meth:`PhotonMapper.estimate`), which
-search radius the maps are built for (:meth:`PhotonMapper.search_radius`) and reads its own
-props (:meth:`PhotonMapper.read_estimator_props`). Where the maps run is the backend object
-chosen once in the constructor; the phases never ask which one it is.
+After the last pass each path's radiance goes into the film, as Mitsuba's own render loop
+puts its samples. A subclass says how the radiance at a visible point is estimated
+(:meth:`PhotonMapper.estimate_points`), what it accumulates over passes
+(:meth:`PhotonMapper.new_state`) and reads its own props
+(:meth:`PhotonMapper.read_estimator_props`). Where the maps run is the backend object chosen
+once in the constructor; the phases never ask which one it is.
 """
 from __future__ import annotations
 
 import logging
+import time
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from mi_partpm import memory
-from mi_partpm.backends import LocalBackend, alpha_channel
-from mi_partpm.eyepath import eye_path_radiance
+from mi_partpm.backends import LocalBackend
+from mi_partpm.camera import CameraPass
+from mi_partpm.eyepath import eye_paths
 from mi_partpm.photonmap import build_photon_maps
+from mi_partpm.progressive import accumulate
 from mi_partpm.props import UNLIMITED_DEPTH, read_photon_map_params
-from mi_partpm.trace import map_sizes, stream_seed, trace_photons
 from mi_partpm.timing import Stopwatch
+from mi_partpm.trace import map_sizes, stream_seed, trace_photons
 
 log = logging.getLogger("mi_partpm")
 
@@ -50,7 +61,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         self.maps = None
         self.radius = None
         self.stats = {}
-        self._rendering = False
+        self.passes, self.alpha, self.time_limit = 1, 0.7, 0.0
+        self.on_pass = None
         self.params = read_photon_map_params(props, fixed_radius=self.fixed_radius)
         self.map_count = 1
         self.backend = LocalBackend()
@@ -59,34 +71,42 @@ class PhotonMapper(mi.SamplingIntegrator):
     # ------------------------------------------------------------------ for subclasses
 
     def read_estimator_props(self, props):
-        """Read and check the props of this estimator (may set ``map_count``, ``backend``)."""
+        """Read and check the props of this estimator (may set ``map_count``, ``backend``,
+        ``passes``, ``alpha``, ``time_limit``)."""
 
     def search_radius(self, scene: mi.Scene):
-        """The search radius the estimate uses (None: chosen per query)."""
+        """The (initial) search radius of the estimate (None: chosen per query)."""
         return None
 
-    def estimate(self, si, bsdf, active, max_bounce=None):
-        """Reflected radiance from the maps at the hits ``si`` (``bsdf`` there), from photons
-        of at most ``max_bounce`` segments (None: any)."""
+    def new_state(self, width: int):
+        """What each of ``width`` eye paths accumulates over the passes
+        (:mod:`mi_partpm.progressive`)."""
+        raise NotImplementedError
+
+    def estimate_points(self, maps, points, state):
+        """Per visible point: (value, photons found), summed onto its eye path and passed to
+        ``state.update`` once all maps and processes have added theirs."""
         raise NotImplementedError
 
     def before_estimate(self):
-        """Called after the maps are built, before the eye pass."""
+        """Called once the first maps are built, before the first estimate."""
 
     def after_estimate(self):
-        """Called after the eye pass: read statistics gathered during the estimate."""
+        """Called after the last pass: read statistics gathered during the estimates."""
 
     # ------------------------------------------------------------------ phases
 
-    def build_maps(self, scene: mi.Scene, sensor=0, spp: int = 0, render_seed: int = 0):
+    def build_maps(self, scene: mi.Scene, sensor=0, spp: int = 0, render_seed: int = 0,
+                   pass_index: int = 0):
         """Phases 1 and 2: trace every owned map's photons and build its kd-tree.
 
         ``sensor`` and ``spp`` (0: the sensor's sampler's) size the eye pass for the memory
-        guard; ``render_seed`` is ``render()``'s seed, which selects the photon streams with
-        the ``seed`` prop (:func:`~mi_partpm.trace.stream_seed`).
+        guard; ``render_seed`` and ``pass_index`` select the photon streams with the ``seed``
+        prop (:func:`~mi_partpm.trace.stream_seed`).
         """
         p = self.params
-        self.radius = self.search_radius(scene)
+        if self.radius is None:
+            self.radius = self.search_radius(scene)
         owned = self.backend.owned_maps(self.map_count)
         traced_here = int(map_sizes(p.photon_count, self.map_count)[owned].sum())
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
@@ -99,93 +119,161 @@ class PhotonMapper(mi.SamplingIntegrator):
         def estimate(ratio=None):
             return memory.estimate_render(traced_here, photon_depth, int(film[0]),
                                           int(film[1]), spp, ratio)
-        # Before any photon is traced: the estimate from the props and the film.
-        memory.check_fits(estimate(), f"photon_count = {p.photon_count}")
+        if pass_index == 0:
+            # Before any photon is traced: the estimate from the props and the film.
+            memory.check_fits(estimate(), f"photon_count = {p.photon_count}")
 
         def check_during(ratio, done):
             memory.check_fits(estimate(ratio), f"photon_count = {p.photon_count} (projected "
                                                f"from the first {done:,} photons traced)")
 
-        log.info("trace: emitting %d photons into %d maps ...", p.photon_count, self.map_count)
         clock = Stopwatch()
+        self.maps = None            # the last pass's maps are freed before the next are traced
         photons = trace_photons(scene, p.photon_count, self.map_count,
-                                stream_seed(p.seed, render_seed), photon_depth,
+                                stream_seed(p.seed, render_seed, pass_index), photon_depth,
                                 p.rr_depth, maps=owned,
                                 min_bounce=2 if p.direct == "nee" else 1,
                                 progress=lambda line: log.debug("trace: %s", line),
                                 memory_check=check_during)
         # The owned maps become this process's maps 0 .. len(owned)-1.
-        photons = photons.with_maps(np.searchsorted(owned, photons.map_id), len(owned))
+        local_of = np.searchsorted(owned, np.arange(self.map_count)).astype(np.uint32)
+        photons = photons.with_maps(dr.gather(mi.UInt32, mi.UInt32(local_of), photons.maps),
+                                    len(owned))
         t_trace = clock.lap()
         self.maps = build_photon_maps(photons, keep_bounce=bounded)
-        t_build = clock.lap(self.maps.direction32, self.maps.power)
-        if len(photons) == 0:
+        stored, segments = len(photons), photons.segments
+        del photons
+        t_build = clock.lap()
+        self._add_stats(time_trace=t_trace, time_build=t_build, photons_stored=stored,
+                        photons_traced=traced_here, segments=segments)
+        self.stats.update(map_bytes=max(self.stats.get("map_bytes", 0), self.maps.nbytes),
+                          maps_owned=owned.tolist())
+        if stored == 0 and pass_index == 0:
             log.warning("no photon was stored: the scene has no surface with a non-delta "
                         "BSDF lit by its emitters; only emitted light will show")
-        self.stats = {
-            "photons_emitted": p.photon_count, "photons_stored": len(photons),
-            "photons_traced": traced_here,
-            "map_count": self.map_count, "maps_owned": owned.tolist(), "radius": self.radius,
-            "render_seed": render_seed,
-            "map_bytes": self.maps.nbytes, "time_trace": t_trace, "time_build": t_build,
-        }
-        log.info("trace: %d photons emitted, %d stored in %d maps (%.2f s)", traced_here,
-                 len(photons), len(owned), t_trace)
-        log.info("build: %d kd-trees, %.1f MB (%.2f s)", len(owned), self.maps.nbytes / 1e6,
-                 t_build)
         return self.maps
 
+    def _add_stats(self, **values):
+        for key, value in values.items():
+            self.stats[key] = self.stats.get(key, 0) + value
+
+    def _start_stats(self, render_seed: int):
+        p = self.params
+        self.stats = {"photons_emitted": p.photon_count, "map_count": self.map_count,
+                      "radius": self.radius,
+                      "render_seed": render_seed, "passes": 0, "photons_stored": 0,
+                      "photons_traced": 0, "segments": 0, "time_trace": 0.0,
+                      "time_build": 0.0, "time_eye": 0.0, "time_estimate": 0.0,
+                      "time_reduce": 0.0, "reduce_bytes": 0}
+
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        """Trace and build the maps, render, gather. With ``backend="mpi"`` rank 0 returns
-        the gathered image and every other rank its partial image (its maps' terms of eq. 2);
-        ``stats["ranks"]`` on rank 0 lists every rank's figures."""
-        if self._rendering:
-            # Mitsuba's base render() dispatches back here once: let it do the film work.
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
+        """Render: for every pass trace and build the maps, follow the eye paths, estimate at
+        their visible points and gather; then develop the film. With ``backend="mpi"`` rank 0
+        returns the image (its ``stats["ranks"]`` lists every rank's figures); the other
+        ranks return an image without emission and direct light."""
         if not develop and self.backend.name != "local":
             raise ValueError(f"develop=False is not supported with backend={self.backend.name!r}"
-                             f": the ranks' images are summed once developed; render with "
-                             f"develop=True")
+                             f": render with develop=True")
         with self.backend.running():
-            image = self._render_here(scene, sensor, _as_int(seed), spp, develop, evaluate)
-            film = (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).film()
-            return self.backend.gather(image, self.stats, alpha_channel(film))
+            seed = _as_int(seed)
+            self._start_stats(seed)
+            camera = CameraPass(scene, sensor, seed, spp, self.aov_names())
+            self.radius = self.stats["radius"] = self.search_radius(scene)
+            L, alpha = self._passes(scene, camera, seed)
+            image = camera.develop(L, alpha, develop)
+            if evaluate:
+                dr.eval(image)
+            self.stats["peak_memory_bytes"] = memory.peak_rss_bytes()
+            self.backend.collect(self.stats)
+            return image
 
-    def _render_here(self, scene, sensor, seed, spp, develop, evaluate):
-        self.build_maps(scene, sensor, spp, seed)
-        self.before_estimate()
-        clock = Stopwatch()
-        self._rendering = True
-        try:
-            image = super().render(scene, sensor, seed, spp, develop, evaluate)
-        finally:
-            self._rendering = False
-        # Evaluated also when asked not to: the estimate phase is timed here.
-        self.stats["time_estimate"] = clock.lap(image)
-        self.stats["peak_memory_bytes"] = memory.peak_rss_bytes()
-        log.info("estimate: %.2f s (peak memory of the process %.2f GB)",
-                 self.stats["time_estimate"], self.stats["peak_memory_bytes"] / 1e9)
+    def _passes(self, scene, camera: CameraPass, seed: int):
+        """The passes of a render: per eye path, the mean light not from the maps and the
+        state of the maps' estimate; returns (radiance, alpha) per sample."""
+        p = self.params
+        state = self.new_state(camera.width)
+        emitted = dr.zeros(mi.Spectrum, camera.width)
+        valid = dr.zeros(mi.Float, camera.width)
+        start = time.perf_counter()
+        for pass_index in range(self.passes):
+            if pass_index:
+                camera.advance()
+            maps = self.build_maps(scene, camera.sensor, camera.spp, seed, pass_index)
+            if pass_index == 0:
+                self.before_estimate()
+            clock = Stopwatch()
+            ray, weight = camera.rays()
+            eye = eye_paths(scene, camera.sampler, ray, p.max_depth, p.rr_depth,
+                            p.direct == "nee", p.hide_emitters, True,
+                            self.backend.emission_weight)
+            eye.points.beta = eye.points.beta * dr.gather(mi.Spectrum, weight,
+                                                          eye.points.lane)
+            emitted += eye.emitted * weight
+            valid += mi.Float(eye.valid)
+            t_eye = clock.lap(emitted, valid)
+            self._estimate_pass(maps, eye.points, state, camera.width)
+            self._add_stats(time_eye=t_eye, passes=1)
+            if self._after_pass(pass_index, state, start, camera.width):
+                break
         self.after_estimate()
-        return image
+        if hasattr(state, "r2"):
+            self.stats["mean_final_radius"] = float(dr.mean(dr.sqrt(state.r2))[0])
+        done = max(state.passes, 1)
+        return emitted / done + state.radiance(), valid / done
+
+    def _estimate_pass(self, maps, points, state, width: int):
+        """Phases 4 and 5 of one pass: estimate, sum per eye path, gather, update."""
+        clock = Stopwatch()
+        values, found = self.estimate_points(maps, points, state)
+        flux, count = accumulate(points, values, found, width)
+        self._add_stats(time_estimate=clock.lap(flux, count))
+        flux, count = self.backend.allreduce([flux, count], self.stats)
+        state.update(flux, count)
+
+    def _after_pass(self, pass_index: int, state, start: float, width: int) -> bool:
+        """Progress after a pass; True when the time limit says to stop."""
+        elapsed = time.perf_counter() - start
+        done = pass_index + 1
+        info = {"pass": done, "passes": self.passes, "elapsed": elapsed,
+                "photons": done * self.params.photon_count,
+                "eta": elapsed / done * (self.passes - done),
+                "mean_radius": float(dr.mean(dr.sqrt(state.r2))[0])
+                if hasattr(state, "r2") else None}
+        stop = self.time_limit > 0 and elapsed >= self.time_limit and done < self.passes
+        if self.passes > 1:
+            radius = "" if info["mean_radius"] is None else \
+                f", mean radius {info['mean_radius']:.4g}"
+            log.info("pass %d of %d: %d photons so far%s, %.1f s elapsed%s", done,
+                     self.passes, info["photons"], radius, elapsed,
+                     ", time limit reached" if stop else f", about {info['eta']:.0f} s left")
+        if self.on_pass is not None:
+            self.on_pass(info)
+        return stop
 
     # ------------------------------------------------------------------ per sample
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        if not self._rendering:
-            # Called by another integrator (moment, aov), whose render() this one never saw:
-            # build maps for this call, with the seed prop's photons.
-            if self.backend.name != "local":
-                raise ValueError(f"{type(self).__name__} with backend="
-                                 f"{self.backend.name!r} must be the scene's top-level "
-                                 f"integrator (its ranks gather whole images); use "
-                                 f"backend='local' inside moment or aov")
-            self.build_maps(scene)
-            self.before_estimate()
+        """The radiance along ``ray`` for another integrator that wraps this one (moment,
+        aov): maps are traced for this call with the ``seed`` prop's streams, and the passes
+        refine the estimate at these rays' visible points (progressive photon mapping)."""
+        if self.backend.name != "local":
+            raise ValueError(f"{type(self).__name__} with backend={self.backend.name!r} "
+                             f"must be the scene's top-level integrator (its ranks gather "
+                             f"whole images); use backend='local' inside moment or aov")
         p = self.params
-        L, valid = eye_path_radiance(scene, sampler, ray, self.estimate, p.max_depth,
-                                     p.rr_depth, p.direct == "nee", p.hide_emitters, active,
-                                     self.backend.emission_weight)
-        return L, valid, []
+        width = dr.width(ray.o)
+        self._start_stats(0)
+        self.radius = self.search_radius(scene)
+        eye = eye_paths(scene, sampler, ray, p.max_depth, p.rr_depth, p.direct == "nee",
+                        p.hide_emitters, active, 1.0)
+        state = self.new_state(width)
+        for pass_index in range(self.passes):
+            maps = self.build_maps(scene, pass_index=pass_index)
+            if pass_index == 0:
+                self.before_estimate()
+            self._estimate_pass(maps, eye.points, state, width)
+        self.after_estimate()
+        return eye.emitted + state.radiance(), eye.valid, []
 
     def aov_names(self):
         return []

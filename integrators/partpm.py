@@ -3,13 +3,15 @@ from __future__ import annotations
 
 import logging
 
+import drjit as dr
 import mitsuba as mi
 
 from mi_partpm.backends import BACKENDS, make_backend
-from mi_partpm.estimate import radiance_estimate
+from mi_partpm.estimate import gather_flux
 from mi_partpm.integrators.common import PhotonMapper
 from mi_partpm.photonmap import fixed_radius
-from mi_partpm.props import read_choice, read_int
+from mi_partpm.progressive import SPPMState
+from mi_partpm.props import read_choice, read_float, read_int
 
 log = logging.getLogger("mi_partpm")
 
@@ -24,7 +26,11 @@ class PartPMIntegrator(PhotonMapper):
     Photon mapping as in "A Parallel Image Generation Algorithm based on Partitioning of
     Photon Maps" (Tamura, Takizawa, Kobayashi): ``photon_count`` photons are traced and split
     into ``map_count`` partial maps, each map is a balanced kd-tree, and the radiance at every
-    eye-ray hit is the sum of the fixed-radius density estimates of all maps (eq. 2).
+    eye path's visible point is the sum of the fixed-radius density estimates of all maps
+    (eq. 2). With ``passes`` > 1 the render is progressive (stochastic progressive photon
+    mapping, Hachisuka and Jensen 2009): every pass traces new photons and new eye paths, and
+    each eye path's radius shrinks pass after pass, the same in every map, so the image
+    converges.
 
     .. list-table::
        :header-rows: 1
@@ -34,18 +40,30 @@ class PartPMIntegrator(PhotonMapper):
          - Description
        * - photon_count
          - |int|
-         - N, photons emitted in total over all maps, >= 1. (Default: 100000)
+         - N, photons emitted per pass in total over all maps, >= 1. (Default: 100000)
        * - map_count
          - |int|
          - n, the number of partial photon maps, in [1, photon_count]. Map i emits N/n photons
            (sizes differ by at most one) from its own random stream. (Default: 1)
        * - radius
          - |float|
-         - Fixed search radius r in world units, > 0. (Default: unset, see radius_fraction)
+         - Fixed (initial) search radius r in world units, > 0. (Default: unset, see
+           radius_fraction)
        * - radius_fraction
          - |float|
          - r as a fraction of the longest side of the scene's bounding box, in (0, 1]; the
            paper uses about 1/20. Not together with radius. (Default: 0.05)
+       * - passes
+         - |int|
+         - Passes, >= 1; 1 is the paper's single pass. (Default: 1)
+       * - alpha
+         - |float|
+         - Fraction of a pass's new photons kept by the radius reduction, in (0, 1):
+           r^2 shrinks by (N + alpha M) / (N + M). (Default: 0.7)
+       * - time_limit
+         - |float|
+         - Seconds, >= 0: stop after the pass during which this much time has passed and
+           return the image so far; 0 is no limit. (Default: 0)
        * - max_depth
          - |int|
          - Longest light path, in segments from the emitter to the camera, as for Mitsuba's
@@ -58,8 +76,8 @@ class PartPMIntegrator(PhotonMapper):
        * - seed
          - |int|
          - Base seed of the photon streams: map i's stream depends on (seed, the seed given
-           to ``mi.render``, i) only, so renders with other seeds trace other photons and
-           average towards the converged image. (Default: 0)
+           to ``mi.render``, the pass, i) only, so renders with other seeds trace other
+           photons and average towards the converged image. (Default: 0)
        * - direct
          - |string|
          - ``photons``: the maps give all reflected light (the paper's direct visualisation);
@@ -71,17 +89,19 @@ class PartPMIntegrator(PhotonMapper):
        * - backend
          - |string|
          - ``local``: all maps in this process; ``mpi``: inside ``mpiexec -n P``, rank j
-           traces, builds and queries maps j, j+P, ... and one MPI reduction sums the partial
-           images onto rank 0 (P <= map_count). (Default: local)
+           traces, builds and queries maps j, j+P, ... and one MPI reduction per pass sums
+           the eye paths' flux and photon counts (P <= map_count). (Default: local)
 
     Photons are stored on surfaces with a non-delta (diffuse or glossy) lobe; mirror and glass
-    only redirect them. Every emitter plugin of Mitsuba 3.9.1 emits photons (area, point,
-    spot, directional, directionalarea, projector, constant, envmap, sunsky). The plugin works
-    inside ``moment`` and ``aov`` (it then traces its maps with the ``seed`` prop alone), and
-    honours ``render()``'s ``sensor``, ``seed``, ``spp``, ``develop`` and ``evaluate``. Eye paths follow delta lobes to the surfaces with a non-delta lobe,
-    where the estimate is taken. Photons are traced and the maps built once per ``render()``
-    call. Variants: the JIT RGB and mono variants (``llvm_ad_rgb``, ``cuda_ad_rgb``, ...);
-    no volumes, no spectral or polarised rendering.
+    only redirect them. Eye paths follow delta lobes to the surfaces with a non-delta lobe,
+    where the estimate is taken. Every emitter plugin of Mitsuba 3.9.1 emits photons (area,
+    point, spot, directional, directionalarea, projector, constant, envmap, sunsky). The plugin
+    works inside ``moment`` and ``aov`` (it then traces its maps with the ``seed`` prop alone
+    and refines the estimate at the wrapper's rays pass after pass), and honours
+    ``render()``'s ``sensor``, ``seed``, ``spp``, ``develop`` and ``evaluate``. After a render,
+    ``stats`` holds the photons stored, the map bytes and the time of every phase. Variants:
+    the JIT RGB and mono variants (``llvm_ad_rgb``, ``cuda_ad_rgb``, ...); no volumes, no
+    spectral or polarised rendering.
 
     .. code-block:: xml
 
@@ -89,6 +109,7 @@ class PartPMIntegrator(PhotonMapper):
             <integer name="photon_count" value="100000"/>
             <integer name="map_count" value="8"/>
             <float name="radius_fraction" value="0.05"/>
+            <integer name="passes" value="64"/>
         </integrator>
     """
 
@@ -96,6 +117,9 @@ class PartPMIntegrator(PhotonMapper):
         n = self.params.photon_count
         self.map_count = read_int(props, "map_count", 1, low=1, high=n,
                                   allowed=f"in [1, photon_count = {n}]")
+        self.passes = read_int(props, "passes", 1, low=1)
+        self.alpha = read_float(props, "alpha", 0.7, low=0.0, high=1.0, high_open=True)
+        self.time_limit = read_float(props, "time_limit", 0.0, low=0.0, low_open=False)
         self.backend = make_backend(read_choice(props, "backend", "local", BACKENDS),
                                     self.map_count)
 
@@ -104,16 +128,25 @@ class PartPMIntegrator(PhotonMapper):
         return fixed_radius(scene, self.params.radius, self.params.radius_fraction)
 
     def before_estimate(self):
-        log.info("estimate: radius %.4g, rendering ...", self.radius)
+        log.info("estimate: radius %.4g, %d pass%s ...", self.radius, self.passes,
+                 "" if self.passes == 1 else "es")
 
-    def estimate(self, si, bsdf, active, max_bounce=None):
-        return radiance_estimate(self.maps, si, bsdf, self.radius, active,
-                                 max_bounce=max_bounce)
+    def new_state(self, width: int) -> SPPMState:
+        return SPPMState.start(width, self.radius, self.alpha)
+
+    def estimate_points(self, maps, points, state: SPPMState):
+        """Each visible point's flux and photon count within its eye path's radius."""
+        if not len(points):
+            return dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0)
+        radius = dr.gather(mi.Float, state.radius, points.lane)
+        est = gather_flux(maps, points.si, points.bsdf, radius, max_bounce=points.max_bounce)
+        return est.flux, est.found
 
     def to_string(self):
         p = self.params
         radius = f"radius = {p.radius}" if p.radius is not None \
             else f"radius_fraction = {p.radius_fraction}"
         return (f"PartPMIntegrator[photon_count = {p.photon_count}, map_count = "
-                f"{self.map_count}, {radius}, {self.common_props_text()}, "
+                f"{self.map_count}, {radius}, passes = {self.passes}, alpha = {self.alpha}, "
+                f"time_limit = {self.time_limit}, {self.common_props_text()}, "
                 f"backend = {self.backend.name}]")

@@ -6,8 +6,9 @@ import logging
 import drjit as dr
 import mitsuba as mi
 
-from mi_partpm.estimate import knn_radiance_estimate
+from mi_partpm.estimate import knn_flux
 from mi_partpm.integrators.common import PhotonMapper
+from mi_partpm.progressive import RadianceSum
 from mi_partpm.props import read_float, read_int
 
 log = logging.getLogger("mi_partpm")
@@ -81,17 +82,21 @@ class PMIntegrator(PhotonMapper):
                  "k photons)", self.stats["mean_knn_radius"], int(acc[1]),
                  100 * self.stats["capped_share"])
 
-    def estimate(self, si, bsdf, active, max_bounce=None):
-        L, res = knn_radiance_estimate(self.maps, si, bsdf, self.k, self.max_radius, active,
-                                       max_bounce=max_bounce)
-        if self._acc is not None:
-            # Side effects run with the image kernel: no second pass over the estimates.
-            counted = mi.Bool(active) & dr.isfinite(res.radius2)
-            dr.scatter_reduce(dr.ReduceOp.Add, self._acc, dr.sqrt(res.radius2), 0, counted)
-            dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 1, counted)
-            dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 2,
-                              counted & (res.count < self.k))
-        return L
+    def new_state(self, width: int) -> RadianceSum:
+        return RadianceSum.start(width)
+
+    def estimate_points(self, maps, points, state):
+        """Each visible point's radiance from its k nearest photons (already normalised by
+        its own kNN radius), and the photons found."""
+        if not len(points):
+            return dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0)
+        est = knn_flux(maps, points.si, points.bsdf, self.k, self.max_radius,
+                       max_bounce=points.max_bounce)
+        counted = dr.isfinite(est.radius2)
+        dr.scatter_reduce(dr.ReduceOp.Add, self._acc, dr.sqrt(est.radius2), 0, counted)
+        dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 1, counted)
+        dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 2, counted & (est.found < self.k))
+        return est.radiance(), est.found
 
     def to_string(self):
         return (f"PMIntegrator[photon_count = {self.params.photon_count}, k = {self.k}, "

@@ -3,12 +3,15 @@
 :class:`LocalBackend` owns every map. With :class:`MPIBackend`, rank j of P owns maps j, j+P,
 j+2P, ... It traces exactly those maps' photons from their own random streams (the stream of
 map i depends on (seed, i) only, never on P), builds their trees and evaluates them at the
-eye-ray hits, which every rank generates identically. The ranks' partial images are summed by
-one ``MPI_Reduce`` to rank 0. No rank holds another's photons.
+eye-ray hits, which every rank generates identically. No rank holds another's photons.
 
 The integrators talk to a backend only through :class:`Backend`'s methods, so the phases have
-no MPI branches. mpi4py is imported only when the MPI backend is used; ``pip install mpi4py
-mpich`` gives a working ``mpiexec`` from PyPI, and a cluster's own MPI works the same.
+no MPI branches. The gather is one ``MPI_Allreduce`` per pass of every eye path's flux and
+photon count (:meth:`Backend.allreduce`): every rank then updates the same progressive
+statistics, and rank 0, which alone adds emission and direct light, holds the image.
+
+mpi4py is imported only when the MPI backend is used; ``pip install mpi4py mpich`` gives a
+working ``mpiexec`` from PyPI, and a cluster's own MPI works the same.
 """
 from __future__ import annotations
 
@@ -20,10 +23,11 @@ import traceback
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
 
 __all__ = ["Backend", "LocalBackend", "MPIBackend", "make_backend", "BACKENDS", "comm_world",
-           "owned_maps", "check_ranks", "reduce_image", "alpha_channel", "abort_on_error",
+           "owned_maps", "check_ranks", "allreduce_arrays", "abort_on_error",
            "share_cores", "find_mpiexec", "MPIUnavailable"]
 
 log = logging.getLogger("mi_partpm")
@@ -81,24 +85,6 @@ def owned_maps(rank: int, ranks: int, map_count: int) -> np.ndarray:
     return np.arange(rank, map_count, ranks, dtype=np.int64)
 
 
-def reduce_image(comm, image: np.ndarray):
-    """Sum every rank's partial image onto rank 0 (one MPI_Reduce).
-
-    Returns ``(total, wait, seconds, nbytes)``: the summed image on rank 0 (None elsewhere),
-    the time this rank waited for the slowest one (a barrier first, so that the reduction's
-    own time is not mixed with load imbalance), the time of the reduction itself and the bytes
-    this rank sent.
-    """
-    from mpi4py import MPI
-    send = np.ascontiguousarray(image, dtype=np.float32)
-    recv = np.empty_like(send) if comm.rank == 0 else None
-    t0 = time.perf_counter()
-    comm.Barrier()
-    t1 = time.perf_counter()
-    comm.Reduce(send, recv, op=MPI.SUM, root=0)
-    return recv, t1 - t0, time.perf_counter() - t1, int(send.nbytes)
-
-
 @contextmanager
 def abort_on_error(comm):
     """Turn an exception on one rank into an abort of the whole job with that rank's message.
@@ -138,7 +124,7 @@ class Backend:
         The ``backend`` prop's value.
     emission_weight : float
         Weight of the terms that do not come from the photon maps (emission, direct light):
-        1 on exactly one process of a render, 0 elsewhere, so the partial images add up.
+        1 on exactly one process of a render (the root), 0 elsewhere.
     """
 
     name = "local"
@@ -152,11 +138,15 @@ class Backend:
         """Context for a render: what to do when it fails."""
         return nullcontext()
 
-    def gather(self, image, stats: dict, alpha=None):
-        """Sum the processes' partial images (eq. 2's gather); return what this process
-        returns from ``render()``. ``alpha``: the image's alpha channel (not summed: every
-        process has the same), or None. ``stats`` is updated with the gather's figures."""
-        return image
+    def allreduce(self, values, stats: dict):
+        """Sum per-lane arrays (``mi.Spectrum`` / ``mi.Float``) over the processes, every
+        process receiving the sum: a progressive pass's flux and photon counts."""
+        return values
+
+    def collect(self, stats: dict) -> dict:
+        """Every process's ``stats`` on the root (for reporting); the root's own is the
+        whole job's."""
+        return stats
 
     @property
     def is_root(self) -> bool:
@@ -169,7 +159,7 @@ class LocalBackend(Backend):
 
 
 class MPIBackend(Backend):
-    """Rank j of P owns maps j, j+P, ...; one ``MPI_Reduce`` to rank 0 is the gather."""
+    """Rank j of P owns maps j, j+P, ...; one ``MPI_Allreduce`` per pass is the gather."""
 
     name = "mpi"
 
@@ -189,31 +179,35 @@ class MPIBackend(Backend):
     def running(self):
         return abort_on_error(self.comm)
 
-    def gather(self, image, stats: dict, alpha=None):
-        import mitsuba as mi
-        partial = np.array(image, dtype=np.float32)
-        if alpha is not None and not self.is_root:
-            partial[..., alpha] = 0.0       # the sum then carries rank 0's alpha only
-        total, wait, seconds, nbytes = reduce_image(self.comm, partial)
-        stats.update(time_wait=wait, time_reduce=seconds, reduce_bytes=nbytes,
-                     rank=self.comm.rank, ranks=None)
-        log.info("reduce: %d bytes to rank 0 (%.3f s, after waiting %.3f s)", nbytes, seconds,
-                 wait)
+    def allreduce(self, values, stats: dict):
+        t0 = time.perf_counter()
+        out, nbytes = allreduce_arrays(self.comm, values)
+        stats["time_reduce"] = stats.get("time_reduce", 0.0) + time.perf_counter() - t0
+        stats["reduce_bytes"] = stats.get("reduce_bytes", 0) + nbytes
+        return out
+
+    def collect(self, stats: dict) -> dict:
+        stats.update(rank=self.comm.rank, ranks=None)
         ranks = self.comm.gather(dict(stats), root=0)   # reporting only
-        if not self.is_root:
-            return image
-        # Rank 0 reports the whole job; its own figures stay in ranks[0].
-        stats.update(ranks=ranks, photons_stored=sum(r["photons_stored"] for r in ranks),
-                     map_bytes=sum(r["map_bytes"] for r in ranks))
-        return mi.TensorXf(total)
+        if self.is_root:
+            stats.update(ranks=ranks, photons_stored=sum(r["photons_stored"] for r in ranks),
+                         map_bytes=sum(r["map_bytes"] for r in ranks))
+        return stats
 
 
-def alpha_channel(film):
-    """Index of the alpha channel in ``film``'s developed image, or None without alpha."""
-    import mitsuba as mi
-    if not mi.has_flag(film.flags(), mi.FilmFlags.Alpha):
-        return None
-    return film.base_channels_count() - 1
+def allreduce_arrays(comm, values):
+    """Sum Dr.Jit arrays over the ranks in one ``MPI_Allreduce`` (float32, packed); returns
+    the sums (same types) and the bytes each rank sent."""
+    from mpi4py import MPI
+    flat = [dr.ravel(v).numpy().astype(np.float32) for v in values]
+    send = np.concatenate(flat)
+    recv = np.empty_like(send)
+    comm.Allreduce(send, recv, op=MPI.SUM)
+    out, offset = [], 0
+    for v, f in zip(values, flat):
+        out.append(dr.unravel(type(v), type(dr.ravel(v))(recv[offset:offset + f.size])))
+        offset += f.size
+    return out, int(send.nbytes)
 
 
 def make_backend(name: str, map_count: int) -> Backend:

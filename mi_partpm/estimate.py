@@ -9,12 +9,18 @@ eq. (2): with the same fixed radius r for every map,
 so the gathered estimate is the sum of the per-map estimates. A photon counts only if it
 arrived on the side of the surface the query looks at, so light never leaks through a thin wall.
 
+The functions here return the *flux* sum (sum of f_r * dPhi_p, weighted by the kernel) and the
+count of photons found, :class:`Flux`; the radiance is flux / (pi r^2). A progressive render
+accumulates the flux and the count pass after pass (:mod:`mi_partpm.progressive`).
+
 The density kernel is one function of a photon's squared distance (:data:`KERNELS`): the
-queries of :mod:`mi_partpm.kdtree` pass the distance of every photon they accept to
-:meth:`_Estimator.contribution`, which weighs it. A kernel's weight w(d^2, r^2) integrates to
-pi r^2 over the disc of radius r, so every kernel shares the normalisation 1/(pi r^2).
+queries of :mod:`mi_partpm.kdtree` pass the distance of every photon they accept to the
+estimator's contribution, which weighs it. A kernel's weight w(d^2, r^2) integrates to pi r^2
+over the disc of radius r, so every kernel shares the normalisation 1/(pi r^2).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -22,7 +28,8 @@ import mitsuba as mi
 from .kdtree import knn_query, radius_query
 from .photonmap import PhotonMaps
 
-__all__ = ["radiance_estimate", "knn_radiance_estimate", "is_plain_diffuse", "KERNELS"]
+__all__ = ["Flux", "gather_flux", "knn_flux", "radiance_estimate", "knn_radiance_estimate",
+           "is_plain_diffuse", "KERNELS"]
 
 #: Density kernels: name -> weight of a photon at squared distance d2 for radius^2 r2, or None
 #: for the box kernel of the paper's eq. (2) (weight 1 within r, nothing to multiply).
@@ -35,61 +42,107 @@ def is_plain_diffuse(flags):
     return mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ((flags & varying) == 0)
 
 
+@dataclass
+class Flux:
+    """A density estimate before its normalisation, one entry per query.
+
+    Attributes
+    ----------
+    flux : mi.Spectrum
+        Sum over the photons found of f_r * power * kernel weight.
+    found : mi.UInt32
+        Photons found (within r, on the query's side or not, accepted).
+    radius2 : mi.Float
+        The squared radius the photons were gathered in.
+    stats : QueryStats or None
+        Traversal counts, when asked for.
+    """
+
+    flux: object
+    found: object
+    radius2: object
+    stats: object = None
+
+    def radiance(self):
+        """flux / (pi r^2), 0 where the radius is 0 or infinite."""
+        ok = (self.radius2 > 0) & dr.isfinite(self.radius2)
+        return self.flux * dr.select(ok, dr.rcp(dr.pi * dr.select(ok, self.radius2, 1.0)), 0.0)
+
+
+@dataclass
+class _Lane:
+    """What the contribution of a photon needs of its query: the hit, its BSDF, the side it
+    is seen from, whether f_r is constant. Put in the walk's order with the queries."""
+
+    si: mi.SurfaceInteraction3f = None
+    bsdf: mi.BSDFPtr = None
+    n_view: mi.Vector3f = None
+    plain: mi.Bool = None
+    radius2: mi.Float = None
+    max_bounce: mi.UInt32 = None
+
+    DRJIT_STRUCT = {"si": mi.SurfaceInteraction3f, "bsdf": mi.BSDFPtr, "n_view": mi.Vector3f,
+                    "plain": mi.Bool, "radius2": mi.Float, "max_bounce": mi.UInt32}
+
+
 class _Estimator:
-    """What eq. (1) needs at a batch of query points, whatever chooses the photons.
+    """What eqs. (1) and (2) need at a batch of query points, whatever chooses the photons.
 
     For a plain diffuse BSDF, f_r is the same for every photon, so the photons' powers are
     summed and multiplied by f_r once. Any other BSDF with a non-delta lobe (glossy, plastic's
     diffuse base, diffuse transmission) is evaluated per photon: f_r = eval(w_p) / |cos w_p|.
     """
 
-    def __init__(self, maps: PhotonMaps, si, bsdf, active, radius2=None, kernel: str = "box"):
-        self.maps, self.si, self.bsdf = maps, si, bsdf
-        self.radius2 = radius2
-        self.weight = KERNELS[kernel]
+    def __init__(self, maps: PhotonMaps, si, bsdf, active, radius2, max_bounce=None,
+                 kernel: str = "box"):
+        self.maps = maps
         self.ctx = mi.BSDFContext()
+        self.weight = KERNELS[kernel]
         self.active = mi.Bool(active)
-        self.plain = is_plain_diffuse(bsdf.flags())
+        width = dr.width(si.p)
         # The side of the surface the query sees: the shading normal turned towards the viewer.
-        self.facing = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
-        self.n_view = si.sh_frame.n * self.facing
+        facing = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
+        self.bounded = max_bounce is not None and maps.bounce is not None
+        self.lane = _Lane(si=si, bsdf=bsdf, n_view=si.sh_frame.n * facing,
+                          plain=is_plain_diffuse(bsdf.flags()),
+                          radius2=dr.zeros(mi.Float, width) + radius2,
+                          max_bounce=dr.zeros(mi.UInt32, width) + (
+                              max_bounce if self.bounded else 0))
+        self.f_plain = bsdf.eval(self.ctx, si, mi.Vector3f(0, 0, facing),
+                                 self.active & self.lane.plain)
 
-    def contribution(self, i, dist2, found):
+    def contribution(self, i, dist2, found, lane: _Lane):
         """f_r * power of photon ``i`` (power alone for plain diffuse), weighted by the kernel
         at squared distance ``dist2``; 0 from the far side."""
-        maps, si = self.maps, self.si
+        maps = self.maps
         wi_photon = maps.photon_direction(i, found)
         power = maps.photon_power(i, found)
-        same_side = dr.dot(wi_photon, self.n_view) > 0
-        wo = si.to_local(wi_photon)
+        same_side = dr.dot(wi_photon, lane.n_view) > 0
+        wo = lane.si.to_local(wi_photon)
         cos = dr.abs(mi.Frame3f.cos_theta(wo))
-        general = found & ~self.plain & (cos > 1e-6)
-        f = self.bsdf.eval(self.ctx, si, wo, general) / dr.select(general, cos, 1.0)
-        value = dr.select(self.plain, dr.select(same_side, power, 0.0), f * power)
+        general = found & ~lane.plain & (cos > 1e-6)
+        f = lane.bsdf.eval(self.ctx, lane.si, wo, general) / dr.select(general, cos, 1.0)
+        value = dr.select(lane.plain, dr.select(same_side, power, 0.0), f * power)
         if self.weight is not None:
-            value = value * self.weight(dist2, self.radius2)
+            value = value * self.weight(dist2, lane.radius2)
         return value
 
-    def radiance(self, total, radius2):
-        """1/(pi r^2) times the summed contributions (times f_r for plain diffuse)."""
-        f_plain = self.bsdf.eval(self.ctx, self.si, mi.Vector3f(0, 0, self.facing),
-                                 self.active & self.plain)
-        ok = self.active & (radius2 > 0) & dr.isfinite(radius2)
-        scale = dr.select(ok, dr.rcp(dr.pi * dr.select(ok, radius2, 1.0)), 0.0)
-        return dr.select(self.plain, f_plain * total, total) * scale
+    def accept(self):
+        """The queries' ``accept``: photons of at most the lane's ``max_bounce`` segments."""
+        if not self.bounded:
+            return None
+        return lambda i, active, lane: self.maps.photon_bounce(i, active) <= lane.max_bounce
+
+    def flux(self, total, found, radius2, stats=None) -> Flux:
+        """The summed contributions as :class:`Flux` (times f_r for plain diffuse)."""
+        return Flux(dr.select(self.lane.plain, self.f_plain * total, total), found, radius2,
+                    stats)
 
 
-def _bounce_filter(maps: PhotonMaps, max_bounce):
-    """The query's ``accept``: photons of at most ``max_bounce`` segments (None: all)."""
-    if max_bounce is None or maps.bounce is None:
-        return None
-    limit = mi.UInt32(max_bounce)
-    return lambda i, active: maps.photon_bounce(i, active) <= limit
-
-
-def radiance_estimate(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius,
-                      active=True, map_range=None, with_stats: bool = False, max_bounce=None):
-    """Reflected radiance towards ``si.wi`` from the photons within ``radius`` of ``si.p``.
+def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, active=True,
+                map_range=None, with_stats: bool = False, max_bounce=None,
+                kernel: str = "box", order: str = "morton") -> Flux:
+    """The flux of the photons within ``radius`` of ``si.p`` towards ``si.wi`` (eq. 2).
 
     Parameters
     ----------
@@ -99,39 +152,58 @@ def radiance_estimate(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radiu
         Query points (eye-path hits on surfaces with a non-delta lobe).
     bsdf : mi.BSDFPtr
         The BSDF at each query point.
-    radius : float
-        The fixed search radius r, the same for every map.
+    radius : float or mi.Float
+        The search radius r: the same for every map (eq. 2), one value or one per query.
     active : mi.Bool
         Lanes to estimate.
     map_range : (first, stop), optional
         Only maps first .. stop-1: one map's partial term of eq. (2). Default: all maps.
     with_stats : bool
-        Also return the traversal statistics per query.
+        Also record the traversal statistics per query.
     max_bounce : mi.UInt32, optional
         Only photons of at most this many segments from the emitter count (per query): the
         rest of a ``max_depth`` not used by the eye path. Needs maps built with their bounce
         counts. Default: every photon.
+    kernel : str
+        A density kernel of :data:`KERNELS`.
+    order : str
+        "morton" (the queries are sorted for the walk) or "given" (the caller sorted them).
     """
-    est = _Estimator(maps, si, bsdf, active)
-    result = radius_query(maps.forest, si.p, radius, est.contribution, mi.Spectrum,
-                          est.active, maps=map_range, with_stats=with_stats,
-                          accept=_bounce_filter(maps, max_bounce))
-    total, stats = result if with_stats else (result, None)
-    L = est.radiance(total, dr.square(mi.Float(radius)))
-    return (L, stats) if with_stats else L
+    radius2 = dr.square(mi.Float(radius))
+    est = _Estimator(maps, si, bsdf, active, radius2, max_bounce, kernel)
+    res = radius_query(maps.forest, si.p, mi.Float(radius), est.contribution, mi.Spectrum,
+                       est.active, maps=map_range, with_stats=True, accept=est.accept(),
+                       state=est.lane, order=order)
+    total, stats = res
+    return est.flux(total, stats.photons_found, est.lane.radius2,
+                    stats if with_stats else None)
 
 
-def knn_radiance_estimate(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, k: int,
-                          max_radius=None, active=True, with_stats: bool = False,
-                          max_bounce=None):
-    """Conventional (Jensen) estimate: the k nearest photons, r = distance to the k-th.
-
-    Returns ``(L, result)``: the radiance and the :class:`~mi_partpm.kdtree.KnnResult`
-    (``radius2`` per query: the squared kNN radius; where fewer than k photons are found,
-    ``max_radius**2`` as in Jensen's ``locate_photons``, or without a cap the squared distance
-    to the farthest one found). ``max_bounce`` as in :func:`radiance_estimate`.
-    """
-    est = _Estimator(maps, si, bsdf, active)
+def knn_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, k: int, max_radius=None,
+             active=True, with_stats: bool = False, max_bounce=None, kernel: str = "box",
+             order: str = "morton") -> Flux:
+    """The conventional (Jensen) estimate's flux: the k nearest photons, r = distance to the
+    k-th. Where fewer than k are found, r is ``max_radius`` as in Jensen's
+    ``locate_photons``, or without a cap the distance to the farthest one found. Arguments
+    as for :func:`gather_flux`."""
+    est = _Estimator(maps, si, bsdf, active, 0.0, max_bounce, kernel)
     res = knn_query(maps.forest, si.p, k, est.contribution, mi.Spectrum, max_radius,
-                    est.active, with_stats=with_stats, accept=_bounce_filter(maps, max_bounce))
-    return est.radiance(res.total, res.radius2), res
+                    est.active, with_stats=with_stats, accept=est.accept(), state=est.lane,
+                    order=order)
+    return est.flux(res.total, res.count, res.radius2, res.stats)
+
+
+def radiance_estimate(maps: PhotonMaps, si, bsdf, radius, active=True, map_range=None,
+                      with_stats: bool = False, max_bounce=None, order: str = "morton"):
+    """Reflected radiance towards ``si.wi`` from the photons within ``radius`` of ``si.p``:
+    :func:`gather_flux` over pi r^2. With ``with_stats``, also the traversal counts."""
+    est = gather_flux(maps, si, bsdf, radius, active, map_range, with_stats, max_bounce,
+                      order=order)
+    return (est.radiance(), est.stats) if with_stats else est.radiance()
+
+
+def knn_radiance_estimate(maps: PhotonMaps, si, bsdf, k: int, max_radius=None, active=True,
+                          with_stats: bool = False, max_bounce=None):
+    """Eq. (1): :func:`knn_flux` over pi r^2. Returns ``(L, Flux)``."""
+    est = knn_flux(maps, si, bsdf, k, max_radius, active, with_stats, max_bounce)
+    return est.radiance(), est

@@ -1,24 +1,33 @@
-"""Eye paths of a photon mapper: from the camera through delta bounces to density estimates.
+"""Eye paths of a photon mapper: from the camera through delta bounces to visible points.
 
-Step 2 of the paper's algorithm: shoot eye rays and intersect them with the scene. The path
-follows mirror and glass (delta) lobes; at every hit whose BSDF has a non-delta lobe the
-photon maps give the reflected radiance there (and, with ``nee``, emitter sampling gives the
-direct part). Emission is added where the camera sees an emitter directly or through delta
-bounces, the only paths the estimates do not already count.
+Step 2 of the paper's algorithm: shoot eye rays and intersect them with the scene. A path
+follows mirror and glass (delta) lobes; every hit whose BSDF has a non-delta lobe becomes a
+*visible point*, where the photon maps give the reflected radiance (and, with ``nee``, emitter
+sampling gives the direct part). Emission is added where the camera sees an emitter directly
+or through delta bounces, the only paths the estimates do not already count.
+
+:func:`eye_paths` runs all paths of a wavefront together, one step per segment (a Python loop
+over depth, the lanes masked, never compacted, so every lane draws the same random numbers in
+the same order as a symbolic loop would), and returns the light it found along the way and
+the visible points, compacted into one buffer: the estimate then runs over that buffer in a
+coherent (Morton) order instead of inside the path loop.
+
+``max_depth`` counts the whole light path, as Mitsuba's ``path`` does: at a hit e segments from
+the camera, emission counts if e <= max_depth, emitter sampling if e + 1 <= max_depth and
+photons of b segments if e + b <= max_depth.
 """
 from __future__ import annotations
 
-from typing import Callable
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from .kdtree import morton_order
-
 from .props import UNLIMITED_DEPTH, segment_limit
 
-__all__ = ["eye_path_radiance", "direct_light", "first_hits"]
+__all__ = ["EyePaths", "VisiblePoints", "eye_paths", "direct_light", "first_hits"]
 
 
 def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf,
@@ -32,22 +41,78 @@ def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction
     return dr.select(active, f * emitter_weight, 0.0)
 
 
-@dr.syntax
-def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
-                      estimate: Callable, max_depth: int, rr_depth: int, nee: bool,
-                      hide_emitters: bool, active=True, emission: float = 1.0):
-    """Radiance along ``ray``: emission plus photon-map estimates at non-delta hits.
+@dataclass
+class VisiblePoints:
+    """Where eye paths need a density estimate, one entry per visible point.
+
+    Attributes
+    ----------
+    si : mi.SurfaceInteraction3f
+        The hit (a surface with a non-delta lobe).
+    bsdf : mi.BSDFPtr
+        Its BSDF.
+    beta : mi.Spectrum
+        The path's throughput from the camera to the hit (delta bounces, Russian roulette).
+    lane : mi.UInt32
+        The eye path (wavefront lane) it belongs to; one path can have several (plastic).
+    max_bounce : mi.UInt32
+        The most segments a photon may have to count here (``max_depth`` - e), or
+        0xFFFFFFFF when the depth is unlimited.
+    parts : tuple of int
+        How many points each depth of the paths added, in buffer order: within a part every
+        lane appears at most once, so sums onto the lanes part by part are deterministic.
+    """
+
+    si: object
+    bsdf: object
+    beta: object
+    lane: object
+    max_bounce: object
+    parts: tuple = ()
+
+    def __len__(self) -> int:
+        return dr.width(self.lane)
+
+
+@dataclass
+class EyePaths:
+    """What :func:`eye_paths` found: per lane the light that does not come from the photon
+    maps (emission, direct light with ``nee``) and whether the camera ray hit anything; and
+    the visible points of all lanes."""
+
+    emitted: object
+    valid: object
+    points: VisiblePoints
+
+
+def _concat_points(parts) -> VisiblePoints:
+    sizes = tuple(len(p) for p in parts)
+    if len(parts) == 1:
+        parts[0].parts = sizes
+        return parts[0]
+    total = sum(len(p) for p in parts)
+    fields = ("si", "bsdf", "beta", "lane", "max_bounce")
+    merged = {f: dr.zeros(type(getattr(parts[0], f)), total) for f in fields}
+    offset = 0
+    for part in parts:
+        slot = dr.arange(mi.UInt32, len(part)) + offset
+        for f in fields:
+            dr.scatter(merged[f], getattr(part, f), slot)
+        offset += len(part)
+    dr.eval(merged)
+    return VisiblePoints(**merged, parts=sizes)
+
+
+def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_depth: int,
+              nee: bool, hide_emitters: bool, active=True,
+              emission: float = 1.0) -> EyePaths:
+    """Follow the eye rays ``ray`` (one per lane) through delta bounces.
 
     Parameters
     ----------
-    estimate : callable(si, bsdf, active, max_bounce) -> mi.Spectrum
-        Reflected radiance from the photon maps at a hit, from photons of at most
-        ``max_bounce`` segments (None: any).
     max_depth : int
         Longest light path in segments from the emitter to the camera, as Mitsuba's ``path``
-        counts it (-1: unlimited): at a hit e segments from the camera, emission counts if
-        e <= max_depth, emitter sampling if e + 1 <= max_depth, photons of b segments if
-        e + b <= max_depth.
+        counts it (-1: unlimited).
     rr_depth : int
         Segment count from which Russian roulette may end a delta chain.
     nee : bool
@@ -56,49 +121,51 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
         Emitters seen directly by the camera are black.
     emission : float
         Weight of the terms that do not come from the photon maps (emission, and direct light
-        with ``nee``): 1, or 0 on all ranks but one of a distributed render, so that the ranks'
-        partial images add up to the image. They are still evaluated, so every rank draws the
-        same random numbers and follows the same eye paths.
-
-    Returns
-    -------
-    (mi.Spectrum, mi.Bool)
-        The radiance and whether the camera ray hit a surface.
+        with ``nee``): 1, or 0 on all ranks but one of a distributed render, so that those
+        terms are counted once. They are still evaluated, so every rank draws the same random
+        numbers and follows the same eye paths.
     """
     bounded = max_depth != UNLIMITED_DEPTH
-    max_depth = segment_limit(max_depth)
+    limit = segment_limit(max_depth)
+    width = dr.width(ray.o)
     ray = mi.Ray3f(ray)
-    L = mi.Spectrum(0)
-    beta = mi.Spectrum(1)
-    depth = mi.UInt32(0)
-    valid = mi.Bool(False)
-    active = mi.Bool(active)
+    L = dr.zeros(mi.Spectrum, width)
+    beta = dr.full(mi.Spectrum, 1.0, width)
+    valid = dr.zeros(mi.Bool, width)
+    active = dr.full(mi.Bool, True, width) & mi.Bool(active)
     ctx_delta = mi.BSDFContext()
     ctx_delta.type_mask = mi.BSDFFlags.Delta
-
-    while dr.hint(active, label="partpm_eye_path"):
+    parts = []
+    depth = 0
+    while depth < limit:
         si = scene.ray_intersect(ray, active)
-        valid |= active & si.is_valid() & (depth == 0)
-
+        if depth == 0:
+            valid = active & si.is_valid()
         # Emission seen by the camera, directly or through delta bounces.
         emitter = si.emitter(scene, active)
-        show = active & (emitter != None) & ((depth > 0) | (not hide_emitters))  # noqa: E711
+        show = active & (emitter != None)   # noqa: E711
+        if depth == 0 and hide_emitters:
+            show = mi.Bool(False) & show
         L += dr.select(show, beta * emitter.eval(si, show), 0.0) * emission
-
         active &= si.is_valid()
         bsdf = si.bsdf(ray)
         flags = bsdf.flags()
-
-        # Density estimate (and direct light) where the BSDF has a non-delta lobe and the
-        # path may grow by at least one more segment towards the light.
-        smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth) & (depth + 1 < max_depth)
-        max_bounce = mi.UInt32(max_depth) - (depth + 1) if bounded else None
-        L += beta * estimate(si, bsdf, smooth, max_bounce)
-        if nee:
-            L += beta * direct_light(scene, sampler, si, bsdf, smooth) * emission
-
+        # A visible point where the BSDF has a non-delta lobe and the path may grow by at
+        # least one more segment towards the light.
+        if depth + 1 < limit:
+            smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth)
+            index = dr.compress(smooth)
+            if dr.width(index):
+                parts.append(VisiblePoints(
+                    si=dr.gather(mi.SurfaceInteraction3f, si, index),
+                    bsdf=dr.gather(mi.BSDFPtr, bsdf, index),
+                    beta=dr.gather(mi.Spectrum, beta, index), lane=index,
+                    max_bounce=dr.full(mi.UInt32, (limit - depth - 1) if bounded
+                                       else 0xFFFFFFFF, dr.width(index))))
+            if nee and depth + 2 <= limit:
+                L += beta * direct_light(scene, sampler, si, bsdf, smooth) * emission
         # Follow the delta lobes (mirror, glass, plastic's coat).
-        follow = active & mi.has_flag(flags, mi.BSDFFlags.Delta) & (depth + 1 < max_depth)
+        follow = active & mi.has_flag(flags, mi.BSDFFlags.Delta) & (depth + 1 < limit)
         bs, weight = bsdf.sample(ctx_delta, si, sampler.next_1d(follow),
                                  sampler.next_2d(follow), follow)
         beta *= weight
@@ -109,10 +176,17 @@ def eye_path_radiance(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
             survive = sampler.next_1d(follow) < q
             beta = dr.select(survive, beta / q, 0.0)
             follow &= survive
-        depth += 1
         active = follow
-
-    return L, valid
+        sampler.schedule_state()
+        dr.eval(L, beta, valid, active, ray)
+        depth += 1
+        if not dr.any(active)[0]:
+            break
+    if not parts:
+        parts = [VisiblePoints(dr.zeros(mi.SurfaceInteraction3f, 0), dr.zeros(mi.BSDFPtr, 0),
+                               dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0),
+                               dr.zeros(mi.UInt32, 0))]
+    return EyePaths(emitted=L, valid=valid, points=_concat_points(parts))
 
 
 def first_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth: int = 16,
@@ -120,8 +194,8 @@ def first_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth: int = 16
     """Where each eye path first needs a density estimate: its first non-delta hit.
 
     One path per sample (``spp`` per pixel, pixel-major), through the camera and along
-    mirror and glass (delta) lobes, as :func:`eye_path_radiance` follows them. Paths that
-    leave the scene, or stay on delta surfaces for ``max_depth`` segments, give no hit.
+    mirror and glass (delta) lobes, as :func:`eye_paths` follows them. Paths that leave the
+    scene, or stay on delta surfaces for ``max_depth`` segments, give no hit.
     ``max_depth = 1`` gives the camera rays' own first hits (no delta bounce followed).
     ``limit`` > 0 keeps at most that many hits, spread evenly over the samples. This is the
     one generator of query points for the experiments (speedup, comparison, benchmarks).
@@ -162,13 +236,13 @@ def first_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth: int = 16
         active &= dr.any(weight != 0)
         ray = si.spawn_ray(si.to_world(bs.wo))
         dr.eval(ray, active, hits, found)
-        if not dr.any(active):
+        if not dr.any(active)[0]:
             break
     keep = dr.compress(found)
     if 0 < limit < dr.width(keep):
         keep = dr.gather(mi.UInt32, keep, mi.UInt32(
             np.linspace(0, dr.width(keep) - 1, limit).round().astype(np.uint32)))
-    points = np.array(dr.gather(mi.Point3f, hits.p, keep)).T
+    points = dr.gather(mi.Point3f, hits.p, keep)
     keep = dr.gather(mi.UInt32, keep, mi.UInt32(morton_order(points).astype(np.uint32)))
     hits = dr.gather(mi.SurfaceInteraction3f, hits, keep)
     return hits, hits.bsdf(), keep

@@ -5,14 +5,15 @@ photons from its own random stream, so the n partial maps are independent and, t
 the full photon map. Photon power is normalised by the TOTAL photon count N, so the per-map
 density estimates add up to the full estimate with no rescaling (eq. 2).
 
-Tracing is a wavefront in Dr.Jit: one kernel per bounce over all live photon paths, after
-which the paths that ended are compacted away. The Python loop runs over bounces, never over
-photons. The photons of this phase are :class:`Photons`, on the host; :mod:`.photonmap` builds
-the maps from them.
+Tracing is one Dr.Jit kernel per batch of photon paths: a symbolic loop over the bounces in
+which every photon stored on a surface with a non-delta lobe claims a slot of a preallocated
+buffer (``dr.scatter_inc``) and is written there. Nothing goes to the host during a batch; a
+batch that stores more photons than its buffer holds is traced again with a buffer of the
+right size (the streams are deterministic, so the photons are the same). The result is
+:class:`~mi_partpm.photons.Photons`, on the device.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Callable, Optional, Sequence
 
 import drjit as dr
@@ -20,68 +21,12 @@ import mitsuba as mi
 import numpy as np
 
 from .memory import TRACE_BATCH
+from .photons import Photons, empty_photons, encode_direction
 from .props import segment_limit
 from .scenes import check_scene
 
-__all__ = ["Photons", "map_sizes", "map_seeds", "stream_seed", "trace_photons", "check_emitters",
-           "emit"]
-
-
-@dataclass
-class Photons:
-    """Photons stored on non-delta surfaces, on the host.
-
-    Attributes
-    ----------
-    position : (K, 3) float32
-        Where the photon was stored.
-    direction : (K, 3) float32
-        Unit incident direction, pointing from the surface back along the arriving photon.
-    power : (K, C) float32
-        Flux carried (C colour channels), already divided by the total emitted count N.
-    normal : (K, 3) float32
-        Shading normal at the hit, turned to the side the photon arrived from.
-    map_id : (K,) uint32
-        The partial map the photon belongs to (the map whose emission produced it).
-    bounce : (K,) uint16
-        Number of segments from the emitter (1 = direct illumination).
-    emitted : int
-        N, the photons emitted in total over all maps (also those of maps not traced here).
-    map_count : int
-        n, the number of partial maps.
-    segments : int
-        Ray segments traced to make them (one scene intersection each): the tracer's work.
-    """
-
-    position: np.ndarray
-    direction: np.ndarray
-    power: np.ndarray
-    normal: np.ndarray
-    map_id: np.ndarray
-    bounce: np.ndarray
-    emitted: int
-    map_count: int
-    segments: int = 0
-
-    def __len__(self) -> int:
-        return int(self.position.shape[0])
-
-    def select(self, mask: np.ndarray) -> "Photons":
-        """The photons where ``mask`` holds (same N and n)."""
-        return Photons(self.position[mask], self.direction[mask], self.power[mask],
-                       self.normal[mask], self.map_id[mask], self.bounce[mask],
-                       self.emitted, self.map_count)
-
-    def with_maps(self, map_id: np.ndarray, map_count: int) -> "Photons":
-        """The same photons assigned to other maps (for partition-invariance checks)."""
-        return Photons(self.position, self.direction, self.power, self.normal,
-                       np.asarray(map_id, dtype=np.uint32), self.bounce, self.emitted,
-                       int(map_count))
-
-    @property
-    def nbytes(self) -> int:
-        return int(sum(a.nbytes for a in (self.position, self.direction, self.power,
-                                          self.normal, self.map_id, self.bounce)))
+__all__ = ["map_sizes", "map_seeds", "stream_seed", "trace_photons", "check_emitters", "emit",
+           "Photons"]
 
 
 def map_sizes(photon_count: int, map_count: int) -> np.ndarray:
@@ -117,10 +62,6 @@ def map_seeds(seed: int, map_count: int) -> np.ndarray:
     with np.errstate(over="ignore"):
         s = _splitmix64(np.full(map_count, int(seed) & 0xFFFFFFFFFFFFFFFF, dtype=np.uint64))
         return _splitmix64(s ^ (np.arange(map_count, dtype=np.uint64) * np.uint64(0xD1B54A32D192ED03)))
-
-
-def _gather_all(idx, *values):
-    return [dr.gather(type(v), v, idx) for v in values]
 
 
 def _emitter_name(emitter) -> str:
@@ -205,7 +146,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         Seed of the photon streams.
     max_depth : int
         Longest photon path in segments from the emitter (-1: unlimited, Russian roulette
-        ends the paths).
+        ends the paths; 0: no photon).
     rr_depth : int
         Segment count from which Russian roulette may end a path.
     maps : sequence of int, optional
@@ -213,7 +154,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     min_bounce : int
         Store photons from this many segments on (2 leaves out direct illumination).
     progress : callable(str), optional
-        Receives a line per bounce.
+        Receives a line per batch.
     batch_size : int
         Photon paths traced together at most; more run in batches (same photons).
     memory_check : callable(stored_per_emitted, traced), optional
@@ -223,120 +164,152 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     Returns
     -------
     Photons
-        Stored photons, ``emitted == photon_count`` whichever maps were traced.
+        Stored photons on the device, ``emitted == photon_count`` whichever maps were traced.
     """
     check_emitters(scene)
     sizes = map_sizes(photon_count, map_count)
     maps = np.arange(map_count) if maps is None else np.asarray(list(maps), dtype=np.int64)
     max_depth = segment_limit(max_depth)
-
-    # Lane -> (map, index within the map), for the traced maps only.
-    lane_map = np.repeat(maps, sizes[maps]).astype(np.uint32)
-    lane_index = (np.arange(lane_map.shape[0]) - np.repeat(
-        np.concatenate(([0], np.cumsum(sizes[maps])))[:-1], sizes[maps])).astype(np.uint64)
-    n_lanes = int(lane_map.shape[0])
-    channels = 3 if mi.is_rgb else 1
-    empty = Photons(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
-                    np.zeros((0, channels), np.float32), np.zeros((0, 3), np.float32),
-                    np.zeros(0, np.uint32), np.zeros(0, np.uint16), int(photon_count),
-                    int(map_count))
-    if n_lanes == 0:
-        return empty
-
-    stored = {k: [] for k in ("position", "direction", "power", "normal", "map_id", "bounce")}
-    segments = 0
+    n_lanes = int(sizes[maps].sum())
+    if n_lanes == 0 or max_depth < 1:
+        return empty_photons(photon_count, map_count)
+    run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
+               min_bounce)
+    # Lane l of the traced maps -> (map, index within the map).
+    ends = np.cumsum(sizes[maps])
+    batches, segments, done = [], 0, 0
+    per_lane = float(min(max_depth, 3))          # stored photons per lane, first guess
     for first in range(0, n_lanes, batch_size):
         # Batches only bound the memory: every lane's random stream depends on its (map,
         # index in the map) alone, so the photons are the same for any batch size.
-        chunk = slice(first, min(first + batch_size, n_lanes))
-        segments += _trace_batch(scene, lane_map[chunk], lane_index[chunk], photon_count,
-                                 map_count, seed, max_depth, rr_depth, min_bounce, channels,
-                                 stored, progress)
-        done = chunk.stop
+        lanes = np.arange(first, min(first + batch_size, n_lanes), dtype=np.int64)
+        which = np.searchsorted(ends, lanes, side="right")
+        index = lanes - (ends[which] - sizes[maps][which])
+        photons, traced = run.batch(maps[which].astype(np.uint32), index.astype(np.uint64),
+                                    per_lane)
+        batches.append(photons)
+        segments += traced
+        done = int(lanes[-1]) + 1
+        stored = sum(len(b) for b in batches)
+        per_lane = max(stored / done, 0.05)
         if memory_check is not None and done < n_lanes:
-            ratio = sum(len(m) for m in stored["map_id"]) / done
-            memory_check(ratio, done)
+            memory_check(stored / done, done)
         if progress is not None and n_lanes > batch_size:
-            progress(f"batch: {done} of {n_lanes} photons traced")
-
-    if not stored["position"]:
-        empty.segments = segments
-        return empty
-    return Photons(*(np.concatenate(stored[k]) for k in stored), int(photon_count),
-                   int(map_count), segments)
+            progress(f"batch: {done} of {n_lanes} photons traced, {stored} stored")
+    photons = _concat(batches, photon_count, map_count)
+    photons.segments = segments
+    return photons
 
 
-def _trace_batch(scene, lane_map, lane_index, photon_count, map_count, seed, max_depth,
-                 rr_depth, min_bounce, channels, stored, progress) -> int:
-    """Trace one batch of photon paths (a wavefront, one kernel per bounce); append the
-    stored photons to ``stored`` and return the ray segments traced."""
-    n_lanes = int(lane_map.shape[0])
-    map_id = mi.UInt32(lane_map)
-    rng = mi.PCG32(n_lanes)
-    rng.seed(dr.gather(mi.UInt64, mi.UInt64(map_seeds(seed, map_count)), map_id),
-             mi.UInt64(lane_index))
+class _Run:
+    """What every batch of one tracing run shares."""
 
-    ray, power = emit(scene, rng, photon_count, _emitter_table(scene))
-    active = dr.any(power != 0) & dr.all(dr.isfinite(power))
+    def __init__(self, scene, photon_count, seeds, max_depth, rr_depth, min_bounce):
+        self.scene, self.photon_count = scene, photon_count
+        self.seeds = mi.UInt64(seeds)
+        self.max_depth, self.rr_depth, self.min_bounce = max_depth, rr_depth, min_bounce
+        self.table = _emitter_table(scene)
+
+    def batch(self, lane_map: np.ndarray, lane_index: np.ndarray, per_lane: float):
+        """Trace one batch; returns (photons, ray segments traced)."""
+        lanes = lane_map.shape[0]
+        capacity = max(1024, int(lanes * per_lane * 1.25))
+        while True:
+            out, counter, segments = self._kernel(mi.UInt32(lane_map), mi.UInt64(lane_index),
+                                                  capacity)
+            stored = int(counter[0])
+            if stored <= capacity:
+                break
+            capacity = stored                     # trace again with room for every photon
+        # The slots were claimed in whatever order the threads ran: put the photons in the
+        # order of their lanes (a lane's photons are already in bounce order), so that every
+        # run hands the same arrays to the build.
+        lanes_of = dr.gather(mi.UInt32, out[-1], dr.arange(mi.UInt32, stored))
+        keep = dr.argsort(lanes_of) if stored else dr.zeros(mi.UInt32, 0)
+        photons = Photons(*[dr.gather(type(a), a, keep) for a in out[:-1]],
+                          emitted=self.photon_count, map_count=0)
+        dr.eval(photons.points, photons.code, photons.flux, photons.maps, photons.bounces)
+        return photons, int(segments[0])
+
+    def _kernel(self, map_id, lane_index, capacity):
+        rng = mi.PCG32(dr.width(map_id))
+        rng.seed(dr.gather(mi.UInt64, self.seeds, map_id), lane_index)
+        ray, power = emit(self.scene, rng, self.photon_count, self.table)
+        out = (dr.zeros(mi.Point3f, capacity), dr.zeros(mi.UInt32, capacity),
+               dr.zeros(mi.Spectrum, capacity), dr.zeros(mi.UInt32, capacity),
+               dr.zeros(mi.UInt32, capacity), dr.zeros(mi.UInt32, capacity))
+        counter = dr.zeros(mi.UInt32, 1)
+        segments = _trace_paths(self.scene, rng, ray, power, map_id, out, counter, capacity,
+                                self.max_depth, self.rr_depth, self.min_bounce)
+        total = dr.sum(segments)
+        dr.eval(out, counter, total)
+        return out, counter, total
+
+
+@dr.syntax
+def _trace_paths(scene, rng, ray, power, map_id, out, counter, capacity, max_depth, rr_depth,
+                 min_bounce):
+    """The bounce loop of one batch (one kernel): store, scatter, roulette. Returns the
+    segments each lane traced."""
+    positions, codes, fluxes, maps, bounces, lanes = out
+    lane = dr.arange(mi.UInt32, dr.width(map_id))
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
-
-    segments = 0
-    bounce = 1
-    while bounce <= max_depth:
-        # Drop the paths that ended; keep the state of the live ones.
-        idx = dr.compress(active)
-        alive = dr.width(idx)
-        if alive == 0:
-            break
-        if alive != dr.width(map_id):
-            ray, power, map_id, state, inc = _gather_all(idx, ray, power, map_id, rng.state,
-                                                         rng.inc)
-            rng = mi.PCG32(alive)
-            rng.state, rng.inc = state, inc
-        active = mi.Bool(True)
-        segments += alive
-        if progress is not None:
-            progress(f"bounce {bounce}: {alive} photon paths")
-
+    active = dr.any(power != 0) & dr.all(dr.isfinite(power))
+    bounce = dr.zeros(mi.UInt32, dr.width(map_id)) + 1
+    segments = dr.zeros(mi.UInt32, dr.width(map_id))
+    depth_limit = dr.opaque(mi.UInt32, max_depth)
+    rr_from = dr.opaque(mi.UInt32, rr_depth)
+    store_from = dr.opaque(mi.UInt32, min_bounce)
+    room = dr.opaque(mi.UInt32, capacity)
+    while dr.hint(active, label="partpm_trace"):
         si = scene.ray_intersect(ray, active)
+        segments += 1
         active &= si.is_valid()
         bsdf = si.bsdf()
-        store = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (bounce >= min_bounce)
-        normal = si.sh_frame.n
-        normal = dr.select(dr.dot(normal, -ray.d) < 0, -normal, normal)
-        hit_p, hit_wi, hit_power = si.p, -ray.d, power
+        store = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (bounce >= store_from)
+        slot = dr.scatter_inc(counter, mi.UInt32(0), store)
+        write = store & (slot < room)
+        dr.scatter(positions, si.p, slot, write)
+        dr.scatter(codes, encode_direction(-ray.d), slot, write)
+        dr.scatter(fluxes, power, slot, write)
+        dr.scatter(maps, map_id, slot, write)
+        dr.scatter(bounces, bounce, slot, write)
+        dr.scatter(lanes, lane, slot, write)
 
-        last = bounce == max_depth
-        if not last:
-            sample1 = rng.next_float32()
-            sample2 = mi.Point2f(rng.next_float32(), rng.next_float32())
-            bs, bsdf_weight = bsdf.sample(ctx, si, sample1, sample2, active)
-            ray = si.spawn_ray(si.to_world(bs.wo))
-            power = power * bsdf_weight
-            active &= dr.any(power != 0) & dr.all(dr.isfinite(power))
-            if bounce >= rr_depth:
-                # Russian roulette on the path's throughput (power relative to its emission).
-                q = dr.minimum(dr.max(bsdf_weight), 0.95)
-                survive = rng.next_float32() < q
-                active &= survive
-                power = dr.select(survive, power / q, power)
-        # One kernel per bounce: the intersection, what to store and the next segment together
-        # (evaluating them apart would trace the rays once per output).
-        dr.eval(hit_p, hit_wi, hit_power, normal, store, ray, power, active, rng.state, map_id)
-
-        s = dr.compress(store)
-        if dr.width(s) > 0:
-            pos, wi, pw, nrm = _gather_all(s, hit_p, hit_wi, hit_power, normal)
-            stored_map = dr.gather(mi.UInt32, map_id, s)
-            dr.eval(pos, wi, pw, nrm, stored_map)
-            stored["position"].append(pos.numpy().T)
-            stored["direction"].append(wi.numpy().T)
-            stored["power"].append(np.atleast_2d(pw.numpy()).reshape(channels, -1).T)
-            stored["normal"].append(nrm.numpy().T)
-            stored["map_id"].append(stored_map.numpy())
-            stored["bounce"].append(np.full(dr.width(s), min(bounce, 65535), np.uint16))
-        if last:
-            break
+        # The next segment: BSDF sampling, then Russian roulette on the throughput.
+        active &= bounce < depth_limit
+        bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(active),
+                                      mi.Point2f(rng.next_float32(active),
+                                                 rng.next_float32(active)), active)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        power *= bsdf_weight
+        active &= dr.any(power != 0) & dr.all(dr.isfinite(power))
+        if bounce >= rr_from:
+            q = dr.minimum(dr.max(bsdf_weight), 0.95)
+            survive = rng.next_float32(active) < q
+            active &= survive
+            power = dr.select(survive, power / q, power)
         bounce += 1
     return segments
 
+
+def _concat(batches, photon_count, map_count) -> Photons:
+    """One :class:`Photons` of every batch's photons, in batch order."""
+    batches = [b for b in batches if len(b)]
+    if not batches:
+        return empty_photons(photon_count, map_count)
+    if len(batches) == 1:
+        b = batches[0]
+        return Photons(b.points, b.code, b.flux, b.maps, b.bounces, photon_count, map_count)
+    total = sum(len(b) for b in batches)
+    merged = [dr.zeros(type(a), total) for a in (batches[0].points, batches[0].code,
+                                                 batches[0].flux, batches[0].maps,
+                                                 batches[0].bounces)]
+    offset = 0
+    for b in batches:
+        slot = dr.arange(mi.UInt32, len(b)) + offset
+        for target, a in zip(merged, (b.points, b.code, b.flux, b.maps, b.bounces)):
+            dr.scatter(target, a, slot)
+        dr.eval(merged)
+        offset += len(b)
+    return Photons(*merged, emitted=photon_count, map_count=map_count)

@@ -15,7 +15,7 @@ from mi_partpm.estimate import radiance_estimate
 def _query_sums(forest, weights, queries, r, maps=None):
     w = mi.Float(np.asarray(weights, np.float32)[forest.order])
     q = mi.Point3f(*[np.asarray(queries[:, k], np.float32) for k in range(3)])
-    total, stats = radius_query(forest, q, r, lambda i, d2, a: dr.gather(mi.Float, w, i, a),
+    total, stats = radius_query(forest, q, r, lambda i, d2, a, s: dr.gather(mi.Float, w, i, a),
                                 maps=maps, with_stats=True)
     return total.numpy(), stats.photons_found.numpy(), stats
 
@@ -153,7 +153,7 @@ def test_knn_max_radius_caps_the_search_like_jensen():
     queries = np.r_[rng.random((500, 3)), [[5.0, 5.0, 5.0]]]   # the last one finds nothing
     forest, dist = _check_knn_against_scipy(pts, queries, 12, max_radius=0.1)
     q = mi.Point3f(*[np.asarray(queries[:, j], np.float32) for j in range(3)])
-    res = knn_query(forest, q, 12, lambda i, d2, a: mi.Float(1.0), max_radius=0.1)
+    res = knn_query(forest, q, 12, lambda i, d2, a, s: mi.Float(1.0), max_radius=0.1)
     count, r2, total = res.count.numpy(), res.radius2.numpy(), res.total.numpy()
     assert 0 < (count < 12).sum() < len(count), "want capped and uncapped queries both"
     np.testing.assert_array_equal(count, np.isfinite(dist).sum(axis=1))

@@ -43,13 +43,14 @@ def test_mpi_two_ranks_give_the_local_image(tmp_path, direct):
     print(f"mpi vs local ({direct}): max relative difference {rel.max():.2e}")
     assert a.mean() > 0.05 and rel.max() < 1e-5
     # Per-rank figures: rank 0 owns maps 0, 2, 4 and rank 1 maps 1, 3; 20000 photons in 5
-    # maps of 4000; both send one image (48 x 40 x 3 channels float32) to the reduction.
+    # maps of 4000; both send every eye path's flux and photon count (48 x 40 pixels x 2 spp
+    # x 4 float32) to the one reduction of the pass.
     s = json.loads(stats.read_text())
     ranks = s["ranks"]
     assert [r["maps_owned"] for r in ranks] == [[0, 2, 4], [1, 3]]
     assert [r["photons_traced"] for r in ranks] == [12000, 8000]
     assert s["photons_stored"] == sum(r["photons_stored"] for r in ranks)
-    assert all(r["reduce_bytes"] == 48 * 40 * 3 * 4 for r in ranks)
+    assert all(r["reduce_bytes"] == 48 * 40 * 2 * 4 * 4 for r in ranks)
     assert all(r["time_reduce"] >= 0 and r["map_bytes"] > 0 for r in ranks)
     assert "reduce MB" in done.stdout   # the per-rank table
 

@@ -196,7 +196,7 @@ def test_fixed_radius_query_matches_brute_force(points, maps, r, seed):
     queries = np.r_[points[: 20], rng.uniform(-2, 2, (10, 3))].astype(np.float32)
     forest = build_forest(points, rng.integers(0, maps, len(points)), maps)
     q = mi.Point3f(*[queries[:, j] for j in range(3)])
-    _, stats = radius_query(forest, q, r, lambda i, d2, a: mi.Float(0.0), with_stats=True)
+    _, stats = radius_query(forest, q, r, lambda i, d2, a, s: mi.Float(0.0), with_stats=True)
     found = stats.photons_found.numpy()
     _, lo, hi = _brute_force_radius(points, queries, r)
     assert np.all(found >= lo) and np.all(found <= hi)

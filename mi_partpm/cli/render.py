@@ -110,7 +110,7 @@ def _write(args, out: Path, image, stats: dict, seconds: dict, resolution):
 
 def _summary(stats: dict, seconds: dict, out: Path) -> str:
     lines = [f"load     {seconds['load']:8.2f} s"]
-    for phase in ("trace", "build", "estimate"):
+    for phase in ("trace", "build", "eye", "estimate"):
         if f"time_{phase}" in stats:
             lines.append(f"{phase:8} {stats[f'time_{phase}']:8.2f} s")
     lines.append(f"render   {seconds['render']:8.2f} s (all phases)")
@@ -130,15 +130,15 @@ def _summary(stats: dict, seconds: dict, out: Path) -> str:
 
 
 def format_ranks(ranks) -> str:
-    """Per-rank figures of an MPI render as a small table."""
+    """Per-rank figures of an MPI render as a small table (times summed over the passes)."""
     lines = [f"{'rank':>4} {'maps':>10} {'photons':>9} {'stored':>9} {'tree MB':>8} "
-             f"{'trace s':>8} {'build s':>8} {'estim s':>8} {'wait s':>7} {'reduce s':>8} "
+             f"{'trace s':>8} {'build s':>8} {'eye s':>7} {'estim s':>8} {'reduce s':>8} "
              f"{'reduce MB':>9}"]
     for j, r in enumerate(ranks):
         maps = ",".join(str(m) for m in r["maps_owned"])
         maps = maps if len(maps) <= 10 else maps[:8] + ".."
         lines.append(f"{j:4d} {maps:>10} {r['photons_traced']:9d} {r['photons_stored']:9d} "
                      f"{r['map_bytes'] / 1e6:8.2f} {r['time_trace']:8.2f} "
-                     f"{r['time_build']:8.2f} {r['time_estimate']:8.2f} {r['time_wait']:7.3f} "
+                     f"{r['time_build']:8.2f} {r['time_eye']:7.2f} {r['time_estimate']:8.2f} "
                      f"{r['time_reduce']:8.4f} {r['reduce_bytes'] / 1e6:9.2f}")
     return "\n".join(lines)

@@ -54,7 +54,7 @@ class _Bench:
 
     def power_sums(self, maps, map_range=None):
         return radius_query(maps.forest, self.p, self.radius,
-                            lambda i, d2, a: maps.photon_power(i, a), mi.Spectrum,
+                            lambda i, d2, a, s: maps.photon_power(i, a), mi.Spectrum,
                             maps=map_range)
 
     def row(self, name, ours, base, base_name, target, ratio, meaning, at_least=True,
@@ -95,7 +95,7 @@ def _bench_queries(b: _Bench):
                                                    workers=-1), b.repeats, jit=False)
     b.faster("radius sums, n=1", ours, base, "cKDTree count only", 3.0)
     ours = median_time(lambda: knn_query(b.maps.forest, b.p, 50,
-                                         lambda i, d2, a: b.maps.photon_power(i, a),
+                                         lambda i, d2, a, s: b.maps.photon_power(i, a),
                                          mi.Spectrum).total, b.repeats)
     try:
         from pykdtree.kdtree import KDTree

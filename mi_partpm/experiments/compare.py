@@ -85,7 +85,7 @@ def calibrate_k(maps: PhotonMaps, points: mi.Point3f, radius: float, tolerance: 
     if dr.width(points) == 0 or maps.photon_count == 0:
         raise ValueError("cannot calibrate k: no camera ray meets a lit non-delta surface")
     forest = maps.forest
-    _, stats = radius_query(forest, points, radius, lambda i, d2, a: mi.Float(0.0),
+    _, stats = radius_query(forest, points, radius, lambda i, d2, a, s: mi.Float(0.0),
                             with_stats=True)
     k = int(np.clip(round(float(dr.mean(mi.Float(stats.photons_found))[0])), 1,
                     maps.photon_count))

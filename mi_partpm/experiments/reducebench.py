@@ -1,8 +1,8 @@
-"""Micro-benchmark of the one collective the MPI backend does: MPI_Reduce (sum, float32).
+"""Micro-benchmark of the one collective the MPI backend does: MPI_Allreduce (sum, float32).
 
 Run under MPI (``mpiexec -n P python -m mi_partpm.experiments.reducebench --out F.json``) or
 through :func:`run_reduce_bench`. For every message size it times, on rank 0, the backend's own
-:func:`mi_partpm.backends.reduce_image` (``MPI_Reduce`` after an ``MPI_Barrier``), and with P >= 2 a
+:func:`mi_partpm.backends.allreduce_arrays` (``MPI_Allreduce`` after an ``MPI_Barrier``), and with P >= 2 a
 ping-pong between ranks 0 and 1 (half the round trip). Medians over the repeats go to a JSON
 file that :func:`hwsim.collective.fit_collective` fits.
 
@@ -47,7 +47,8 @@ def _drjit_work():
 def measure(comm, sizes: Sequence[int] = SIZES, repeats: int = 15, warmup: int = 2,
             condition: str = "transport") -> dict:
     """Median seconds of Reduce and of a one-way ping-pong for each size (on rank 0)."""
-    from ..backends import reduce_image
+    from drjit.llvm import Float
+    from ..backends import allreduce_arrays
     if condition not in CONDITIONS:
         raise ValueError(f"condition must be one of {', '.join(CONDITIONS)}, got {condition!r}")
     work = None
@@ -65,8 +66,12 @@ def measure(comm, sizes: Sequence[int] = SIZES, repeats: int = 15, warmup: int =
         for rep in range(warmup + repeats):
             if work is not None:
                 work()
-            # The backend's own gather: a barrier, then MPI_Reduce timed on its own.
-            _, _, seconds, _ = reduce_image(comm, send)
+            # The backend's own gather: a barrier, then its MPI_Allreduce timed on its own.
+            values = [Float(send)]
+            comm.Barrier()
+            t0 = time.perf_counter()
+            allreduce_arrays(comm, values)
+            seconds = time.perf_counter() - t0
             if comm.size > 1:
                 comm.Barrier()
                 t2 = time.perf_counter()

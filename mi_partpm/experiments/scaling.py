@@ -76,9 +76,9 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
             first_image = image
         diff = float(np.max(np.abs(image - first_image) / np.maximum(np.abs(first_image), 1e-3)))
         slowest = {ph: _median([max(r[f"time_{ph}"] for r in run["ranks"]) for run in runs])
-                   for ph in ("trace", "build", "estimate")}
-        compute = _median([max(r["time_trace"] + r["time_build"] + r["time_estimate"]
-                               for r in run["ranks"]) for run in runs])
+                   for ph in ("trace", "build", "eye", "estimate")}
+        compute = _median([max(r["time_trace"] + r["time_build"] + r["time_eye"]
+                               + r["time_estimate"] for r in run["ranks"]) for run in runs])
         rows.append({
             "ranks": p, "maps": maps, "time_render": _median([r["time_render"] for r in runs]),
             **{f"time_{k}_max": v for k, v in slowest.items()},

@@ -89,11 +89,12 @@ def _setup(scene_name, photons, streams, resolution, spp, radius_fraction, seed,
 def _measure(s: _Setup, n: int, repeats: int):
     """Time every map of n alone ``repeats`` times; record its traversal counts and its
     partial estimates. Returns (maps, times (n, repeats), counts (3, n, Q), gathered (Q, 3))."""
-    maps = build_photon_maps(s.traced.with_maps(s.traced.map_id % n, n))
-    dr.eval(maps.direction32, maps.power)
+    maps = build_photon_maps(s.traced.with_maps(s.traced.maps % n, n))
 
     def one_map(m):
-        return radiance_estimate(maps, s.si, s.bsdf, s.radius, s.active, map_range=(m, m + 1))
+        # The hit points are already in Morton order (first_hits).
+        return radiance_estimate(maps, s.si, s.bsdf, s.radius, s.active, map_range=(m, m + 1),
+                                 order="given")
     timed(lambda: one_map(0))     # warm-up: compile (one kernel for every map, opaque range)
     times = np.zeros((n, repeats))
     for rep in range(repeats):
@@ -104,7 +105,7 @@ def _measure(s: _Setup, n: int, repeats: int):
     gathered = np.zeros((s.queries, 3))
     for m in range(n):
         L, stats = radiance_estimate(maps, s.si, s.bsdf, s.radius, s.active,
-                                     map_range=(m, m + 1), with_stats=True)
+                                     map_range=(m, m + 1), with_stats=True, order="given")
         dr.eval(L, stats.nodes_visited, stats.photons_tested, stats.photons_found)
         counts[:, m] = [stats.nodes_visited.numpy(), stats.photons_tested.numpy(),
                         stats.photons_found.numpy()]

@@ -1,7 +1,8 @@
 """The k-nearest-neighbour query over a forest: the conventional estimate of eq. (1).
 
-The walk is the stackless traversal of :mod:`.radius`, visiting the nearer child first, with a
-per-lane max-heap of the k best candidates in local memory.
+The walk is the stackless while-while traversal of :mod:`.radius`, visiting the nearer child
+first, with a per-lane max-heap of the k best candidates in local memory. Queries are walked
+in Morton order and answered in the caller's.
 """
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ import mitsuba as mi
 import numpy as np
 
 from .forest import Forest
-from .radius import ASCEND, DESCEND, SCAN, QueryStats, coordinate, walk_start
+from .radius import (QueryStats, coordinate, map_tables, order_queries, permute,
+                     photon_position, split_of, unpermute)
 
 __all__ = ["knn_query", "KnnResult", "knn_neighbours"]
 
@@ -43,7 +45,7 @@ class KnnResult:
 
 def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
               max_radius=None, active=True, maps=None, with_stats: bool = False,
-              neighbours: bool = False, accept=None):
+              neighbours: bool = False, accept=None, state=None, order: str = "morton"):
     """The ``k`` photons nearest to each query point, and the sum of their contributions.
 
     Parameters
@@ -54,7 +56,7 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         Query points, one per lane.
     k : int
         Neighbours wanted, >= 1.
-    contribution : callable(index, dist2, active) -> result_type, optional
+    contribution : callable(index, dist2, active, state) -> result_type, optional
         Summed over the neighbours found, as in :func:`~.radius.radius_query`.
     result_type : Dr.Jit array type
         Type of ``contribution``'s results (default: ``mi.Float``).
@@ -66,8 +68,13 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         Search only maps ``first .. stop-1`` (default: all).
     with_stats : bool
         Also record the traversal counts (:class:`QueryStats`).
-    accept : callable(index, active) -> mi.Bool, optional
+    accept : callable(index, active, state) -> mi.Bool, optional
         Which photons may be neighbours at all (default: every photon).
+    state : PyTree of per-query arrays, optional
+        Per-query data for the callbacks, put in the walk's order with the queries (see
+        :func:`~.radius.radius_query`).
+    order : str
+        "morton" (default) or "given", as for :func:`~.radius.radius_query`.
     neighbours : bool
         Also return the neighbours: two lists of k arrays, squared distances and tree-order
         indices; unused entries hold ``inf`` and ``0xFFFFFFFF``.
@@ -79,7 +86,8 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
 
     Notes
     -----
-    The walk is the stackless traversal of :func:`radius_query`, visiting the nearer child
+    The walk is the stackless traversal of :func:`~.radius.radius_query`, visiting the nearer
+    child
     first, with a per-lane max-heap of the k best candidates in local memory. The search
     radius starts at ``max_radius`` and shrinks to the heap's largest distance once it holds
     k photons, so far subtrees are skipped as in Jensen's ``locate_photons``. Photons at
@@ -96,7 +104,7 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         r2max = dr.opaque(mi.Float, float(max_radius) ** 2)   # no recompile per value
     else:
         r2max = dr.square(mi.Float(max_radius))
-    if forest.points.shape[0] == 0:
+    if forest.size == 0 or width == 0:
         zeros = dr.zeros(mi.UInt32, width)
         stats = QueryStats(zeros, mi.UInt32(zeros), mi.UInt32(zeros)) if with_stats else None
         res = KnnResult(dr.zeros(result_type, width), dr.zeros(mi.Float, width) + r2max,
@@ -105,8 +113,21 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
             return (res, [dr.full(mi.Float, dr.inf, width)] * k,
                     [dr.full(mi.UInt32, 0xFFFFFFFF, width)] * k)
         return res
-    return _knn_walk(forest, p, int(k), contribution, result_type, r2max, active, first,
-                     stop, with_stats, neighbours, accept)
+    perm = order_queries(p, width, order)
+    active = dr.full(mi.Bool, True, width) & mi.Bool(active)
+    if not isinstance(r2max, float):
+        r2max = permute(dr.zeros(mi.Float, width) + r2max, perm, width)
+    res, d2, idx = _knn_walk(forest, permute(p, perm, width), int(k), contribution,
+                             result_type, r2max, permute(active, perm, width), first, stop,
+                             neighbours, accept, permute(state, perm, width))
+    res = KnnResult(*[unpermute(v, perm, width) for v in (res.total, res.radius2, res.count)],
+                    QueryStats(*[unpermute(v, perm, width) for v in (
+                        res.stats.nodes_visited, res.stats.photons_tested,
+                        res.stats.photons_found)]) if with_stats else None)
+    if neighbours:
+        return res, [unpermute(v, perm, width) for v in d2], \
+            [unpermute(v, perm, width) for v in idx]
+    return res
 
 
 @dr.syntax
@@ -146,75 +167,72 @@ def _heap_insert(heap_d, heap_i, count, ku, d2, i, push, replace):
 
 @dr.syntax
 def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, stop,
-              with_stats, neighbours, accept):
-    """Near-first stackless walk with a bounded max-heap per lane (see :func:`knn_query`)."""
-    dev = forest.device()
+              neighbours, accept, state):
+    """Near-first while-while walk with a bounded max-heap per lane (see
+    :func:`knn_query`). Returns (KnnResult with stats, dist2 list, index list)."""
     width = dr.width(p)
     heap_d = dr.alloc_local(mi.Float, k, dr.full(mi.Float, dr.inf, width))
     heap_i = dr.alloc_local(mi.UInt32, k, dr.full(mi.UInt32, 0xFFFFFFFF, width))
     r2 = dr.zeros(mi.Float, width) + r2max
     count = dr.zeros(mi.UInt32, width)
-
-    (active, m, node, mode, i, end, node_base, leaf_base, n_int, nodes_visited,
-     photons_tested) = walk_start(dev, width, first, stop, active)
-    stop_u = dr.opaque(mi.UInt32, stop)
     ku = mi.UInt32(k)
+    m = dr.zeros(mi.UInt32, width) + dr.opaque(mi.UInt32, first)
+    stop_u = dr.opaque(mi.UInt32, stop)
+    active &= m < stop_u
+    node_base, leaf_base, n_int = map_tables(forest, m, active)
+    node = dr.zeros(mi.UInt32, width)
+    going_down = dr.full(mi.Bool, True, width)
+    nodes_visited = dr.zeros(mi.UInt32, width)
+    photons_tested = dr.zeros(mi.UInt32, width)
 
     while dr.hint(active, label="partpm_knn_query"):
-        descend = active & (mode == DESCEND)
-        scan = active & (mode == SCAN)
-        ascend = active & (mode == ASCEND)
+        # To the next leaf: nearer child first; the farther one if the ball still reaches it.
+        at_leaf = mi.Bool(False)
+        searching = mi.Bool(active)
+        while dr.hint(searching, label="partpm_knn_descend"):
+            if going_down:
+                nodes_visited += 1
+                if node < n_int:
+                    split, axis = split_of(forest, node_base + node)
+                    right = coordinate(p, axis) > split
+                    node = 2 * node + 1 + dr.select(right, 1, 0)
+                else:
+                    at_leaf = mi.Bool(True)
+                    searching = mi.Bool(False)
+            elif node == 0:
+                m += 1
+                if m < stop_u:
+                    node_base, leaf_base, n_int = map_tables(forest, m)
+                    going_down = mi.Bool(True)
+                else:
+                    searching = mi.Bool(False)
+                    active = mi.Bool(False)
+            else:
+                parent = (node - 1) >> 1
+                split, axis = split_of(forest, node_base + parent)
+                diff = coordinate(p, axis) - split
+                from_near = (node & 1) == dr.select(diff > 0, 0, 1)
+                to_far = from_near & (dr.square(diff) <= r2)
+                node = dr.select(to_far, dr.select((node & 1) == 1, node + 1, node - 1),
+                                 parent)
+                going_down = to_far
 
-        # Descend: nearer child first, until a leaf; then scan its photons.
-        nodes_visited += dr.select(descend, 1, 0)
-        inner = descend & (node < n_int)
-        axis = dr.gather(mi.UInt32, dev["split_axis"], node_base + node, inner)
-        split = dr.gather(mi.Float, dev["split_value"], node_base + node, inner)
-        right = coordinate(p, axis) > split
-        at_leaf = descend & ~inner
+        # Test the leaf's photons: keep one if it beats the heap's worst (or there is room).
         leaf = leaf_base + (node - n_int)
-        leaf_first = dr.gather(mi.UInt32, dev["leaf_start"], leaf, at_leaf)
-        leaf_end = dr.gather(mi.UInt32, dev["leaf_start"], leaf + 1, at_leaf)
-
-        # Scan: test one photon, keep it if it beats the heap's worst (or the heap has room).
-        testing = scan & (i < end)
-        photons_tested += dr.select(testing, 1, 0)
-        q = dr.gather(mi.Point3f, dev["points"], i, testing)
-        d2 = dr.squared_norm(q - p)
-        room = count < ku
-        take = testing & dr.select(room, d2 <= r2, d2 < r2)
-        if dr.hint(accept is not None, mode="scalar"):
-            take &= accept(i, take)
-        _heap_insert(heap_d, heap_i, count, ku, d2, i, take & room, take & ~room)
-        count = dr.select(take & room, count + 1, count)
-        r2 = dr.select(take & (count == ku), heap_d.read(0, take), r2)
-        i = dr.select(testing, i + 1, i)
-
-        # Ascend: after the nearer child, visit the farther one if the ball still reaches it.
-        leaving = ascend & (node != 0)
-        parent = (node - 1) >> 1
-        paxis = dr.gather(mi.UInt32, dev["split_axis"], node_base + parent, leaving)
-        psplit = dr.gather(mi.Float, dev["split_value"], node_base + parent, leaving)
-        diff = coordinate(p, paxis) - psplit
-        from_near = (node & 1) == dr.select(diff > 0, 0, 1)
-        to_far = leaving & from_near & (dr.square(diff) <= r2)
-        sibling = dr.select((node & 1) == 1, node + 1, node - 1)
-        next_map = ascend & (node == 0)
-        m = dr.select(next_map, m + 1, m)
-        more = next_map & (m < stop_u)
-        node_base = dr.select(more, dr.gather(mi.UInt32, dev["node_base"], m, more), node_base)
-        leaf_base = dr.select(more, dr.gather(mi.UInt32, dev["leaf_base"], m, more), leaf_base)
-        n_int = dr.select(more, dr.gather(mi.UInt32, dev["internal_count"], m, more), n_int)
-
-        # State transitions, all lanes at once.
-        node = dr.select(inner, 2 * node + 1 + dr.select(right, 1, 0), node)
-        node = dr.select(leaving, dr.select(to_far, sibling, parent), node)
-        i = dr.select(at_leaf, leaf_first, i)
-        end = dr.select(at_leaf, leaf_end, end)
-        mode = dr.select(at_leaf, SCAN, mode)
-        mode = dr.select(scan & ~testing, ASCEND, mode)
-        mode = dr.select(to_far | more, DESCEND, mode)
-        active = active & ~(next_map & ~more)
+        i = dr.gather(mi.UInt32, forest.leaf_table, leaf, at_leaf)
+        end = dr.select(at_leaf, dr.gather(mi.UInt32, forest.leaf_table, leaf + 1, at_leaf), i)
+        while dr.hint(i < end, label="partpm_knn_scan"):
+            photons_tested += 1
+            d2 = dr.squared_norm(photon_position(forest, i) - p)
+            room = count < ku
+            take = dr.select(room, d2 <= r2, d2 < r2)
+            if dr.hint(accept is not None, mode="scalar"):
+                take &= accept(i, take, state)
+            _heap_insert(heap_d, heap_i, count, ku, d2, i, take & room, take & ~room)
+            count = dr.select(take & room, count + 1, count)
+            r2 = dr.select(take & (count == ku), heap_d.read(0, take), r2)
+            i += 1
+        going_down = mi.Bool(False)
 
     if dr.hint(isinstance(r2max, float), mode="scalar"):
         # No cap: fewer than k photons exist, and r is the distance to the farthest found
@@ -225,13 +243,14 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
         j = mi.UInt32(0)
         while j < count:
             total += contribution(heap_i.read(j, j < count), heap_d.read(j, j < count),
-                                  mi.Bool(True))
+                                  mi.Bool(True), state)
             j += 1
-    stats = QueryStats(nodes_visited, photons_tested, mi.UInt32(count))
-    res = KnnResult(total, r2, count, stats if with_stats else None)
+    res = KnnResult(total, r2, count, QueryStats(nodes_visited, photons_tested,
+                                                 mi.UInt32(count)))
     # The heap's entries are read only when asked for (k lazy variables each otherwise).
-    return (res, [heap_d.read(j) for j in range(k)],
-            [heap_i.read(j) for j in range(k)]) if neighbours else res
+    dist2 = [heap_d.read(j) for j in range(k)] if neighbours else None
+    index = [heap_i.read(j) for j in range(k)] if neighbours else None
+    return res, dist2, index
 
 
 def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
@@ -250,7 +269,7 @@ def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
     order = np.argsort(d2, axis=1, kind="stable")
     d2 = np.take_along_axis(d2, order, axis=1)
     idx = np.take_along_axis(idx, order, axis=1)
-    n = forest.points.shape[0]
+    n = forest.size
     missing = ~np.isfinite(d2)
     idx = np.where(missing, n, forest.order[np.minimum(idx, max(n - 1, 0))] if n else n)
     return np.sqrt(d2), idx

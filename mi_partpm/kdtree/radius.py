@@ -1,9 +1,15 @@
-"""The fixed-radius query over a forest: the stackless walk of eq. (2)'s density estimate.
+"""The fixed-radius query over a forest: the walk behind eq. (2)'s density estimate.
 
 One lane per query point walks the implicit trees of the maps it is asked for, one map after
-the other: it descends into every child whose half-space the query ball reaches and climbs
-back through parents, so it needs no per-lane stack. Every photon within the radius is passed
-to a callback with its squared distance, and the callback's results are summed.
+the other, with no per-lane stack: it descends into every child whose half-space the query
+ball reaches and climbs back through parents. The walk is "while-while": an inner loop moves
+to the next leaf the ball reaches, a second inner loop tests that leaf's photons, so the lanes
+of a SIMD packet test photons together instead of interleaving node steps and photon tests.
+Every photon within the radius is passed to a callback with its squared distance, and the
+callback's results are summed.
+
+Queries are put in Morton order first (:func:`order_queries`), so that lanes side by side walk
+the same nodes, and the results come back in the caller's order.
 """
 from __future__ import annotations
 
@@ -12,12 +18,16 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .forest import Forest
+from .forest import RECORD_FLOATS, Forest, morton_codes
 
-__all__ = ["radius_query", "QueryStats"]
+__all__ = ["radius_query", "QueryStats", "order_queries", "ORDERS"]
 
-# Walk states of the stackless traversal (shared with the kNN walk).
-DESCEND, SCAN, ASCEND = 0, 1, 2
+#: Query orders: "morton" sorts the query points along a Z-order curve before the walk (and
+#: returns results in the caller's order); "given" walks them as they come.
+ORDERS = ("morton", "given")
+
+#: Below this many queries the sort costs more than it saves.
+SORT_FROM = 4096
 
 
 @dataclass
@@ -34,8 +44,57 @@ def coordinate(p, axis):
     return dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
 
 
+def photon_position(forest: Forest, index, active=True) -> mi.Point3f:
+    """Positions of the photons at tree-order ``index`` (one 16-byte load each)."""
+    rec = dr.gather(mi.Vector4f, forest.records, index, active)
+    return mi.Point3f(rec.x, rec.y, rec.z)
+
+
+def order_queries(p, width: int, order: str):
+    """The permutation that puts the queries in walking order, or None to keep theirs."""
+    if order not in ORDERS:
+        raise ValueError(f"order must be one of {', '.join(repr(o) for o in ORDERS)}, got "
+                         f"{order!r}")
+    if order == "given" or width < SORT_FROM:
+        return None
+    return dr.argsort(morton_codes(p))
+
+
+def permute(value, perm, width):
+    """``value`` (an array of ``width`` lanes, a PyTree of them, a scalar or None) in the
+    order ``perm``; anything that is not per-lane passes through."""
+    if perm is None or value is None or isinstance(value, (bool, int, float)):
+        return value
+    if dr.is_array_v(value) and dr.width(value) != width:
+        return value
+    if dr.is_array_v(value):
+        return dr.gather(type(value), value, perm)
+    if hasattr(value, "DRJIT_STRUCT"):
+        if type(value).__module__.startswith("mitsuba"):
+            return dr.gather(type(value), value, perm)      # a struct Mitsuba binds
+        out = type(value)()
+        for k in value.DRJIT_STRUCT:
+            setattr(out, k, permute(getattr(value, k), perm, width))
+        return out
+    if isinstance(value, (tuple, list)):
+        return type(value)(permute(v, perm, width) for v in value)
+    if isinstance(value, dict):
+        return {k: permute(v, perm, width) for k, v in value.items()}
+    return value
+
+
+def unpermute(value, perm, width):
+    """The inverse of :func:`permute` for per-lane results."""
+    if perm is None or value is None:
+        return value
+    out = dr.zeros(type(value), width)
+    dr.scatter(out, value, perm)
+    return out
+
+
 def radius_query(forest: Forest, p, r, contribution, result_type=None, active=True,
-                 maps=None, with_stats: bool = False, accept=None):
+                 maps=None, with_stats: bool = False, accept=None, state=None,
+                 order: str = "morton"):
     """Sum, over the photons within distance ``r`` of each query point, ``contribution``.
 
     Parameters
@@ -45,11 +104,12 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     p : mi.Point3f
         Query points, one per lane.
     r : float or mi.Float
-        Search radius (the same for every map, as eq. (2) requires).
-    contribution : callable(index: mi.UInt32, dist2: mi.Float, active: mi.Bool) -> Spectrum-like
+        Search radius: one for all (eq. (2) needs the same radius in every map) or one per
+        query (a progressive render's shrinking radii).
+    contribution : callable(index, dist2, active, state) -> result_type
         Called for each photon found, with its tree-order index into the forest's photon
-        arrays and its squared distance to the query point (what a density kernel weighs);
-        its results are summed.
+        arrays, its squared distance to the query point (what a density kernel weighs) and
+        ``state`` in the walk's lane order; its results are summed.
     result_type : Dr.Jit array type
         Type of ``contribution``'s results, e.g. ``mi.Spectrum`` (default: ``mi.Float``).
     active : mi.Bool
@@ -59,109 +119,124 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
         gathered estimate of eq. (2); one map alone is its partial term.
     with_stats : bool
         Also return a :class:`QueryStats` with per-lane traversal counts.
-    accept : callable(index, active) -> mi.Bool, optional
+    accept : callable(index, active, state) -> mi.Bool, optional
         Which photons may count at all (e.g. those of few enough bounces); a photon it
         rejects is tested but not found. Default: every photon.
+    state : PyTree of per-query arrays, optional
+        What the callbacks need per query (a BSDF, a normal, ...). The queries are walked in
+        another order than the caller's: ``state`` is put in that order with them, so the
+        callbacks must read per-query data from it, not from arrays they close over.
+    order : str
+        "morton" (default): walk the queries in Morton order of ``p``, results in the
+        caller's order; "given": walk them as they come (the caller has ordered them).
 
     Returns
     -------
-    total, or (total, QueryStats)
+    total, or (total, QueryStats), per query in the caller's order.
     """
     first, stop = (0, forest.map_count) if maps is None else maps
     result_type = mi.Float if result_type is None else result_type
-    if forest.points.shape[0] == 0:
+    width = dr.width(p)
+    if forest.size == 0 or width == 0:
         # No photon anywhere: nothing to walk (and no array to gather from).
-        width = dr.width(p)
-        zeros = mi.UInt32(0) if width == 1 else dr.zeros(mi.UInt32, width)
-        stats = QueryStats(zeros, mi.UInt32(zeros), mi.UInt32(zeros))
+        zeros = dr.zeros(mi.UInt32, width)
         total = dr.zeros(result_type, width)
-        return (total, stats) if with_stats else total
-    return _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats,
-                 accept)
+        return (total, QueryStats(zeros, mi.UInt32(zeros), mi.UInt32(zeros))) \
+            if with_stats else total
+    perm = order_queries(p, width, order)
+    active = dr.full(mi.Bool, True, width) & mi.Bool(active)
+    r = dr.opaque(mi.Float, r) if isinstance(r, (int, float)) else mi.Float(r)
+    total, stats = _walk(forest, permute(p, perm, width), permute(r, perm, width),
+                         contribution, result_type, permute(active, perm, width), first, stop,
+                         with_stats, accept, permute(state, perm, width))
+    total = unpermute(total, perm, width)
+    if not with_stats:
+        return total
+    return total, QueryStats(*[unpermute(v, perm, width) for v in (
+        stats.nodes_visited, stats.photons_tested, stats.photons_found)])
 
 
-def walk_start(dev, width, first, stop, active):
-    """Initial state of a walk over maps first .. stop-1: at the root of map ``first``.
+def map_tables(forest: Forest, m, active=True):
+    """(node base, leaf base, internal-node count) of map ``m`` per lane."""
+    t = forest.tables()
+    return (dr.gather(mi.UInt32, t["node_base"], m, active),
+            dr.gather(mi.UInt32, t["leaf_base"], m, active),
+            dr.gather(mi.UInt32, t["internal_count"], m, active))
 
-    Every state variable has the query's width (a literal would make a 1-wide kernel).
-    Returns active, map, node, mode, photon index, leaf end, the map's node base, leaf base
-    and internal-node count, and the two traversal counters.
-    """
-    active = dr.full(mi.Bool, first < stop, width) & mi.Bool(active)
-    # Opaque: the map range must not be baked into the kernel (one compile for every map).
-    m = dr.zeros(mi.UInt32, width) + dr.opaque(mi.UInt32, first)
-    zero = dr.zeros(mi.UInt32, width)
-    return (active, m, mi.UInt32(zero), dr.full(mi.UInt32, DESCEND, width), mi.UInt32(zero),
-            mi.UInt32(zero),
-            dr.gather(mi.UInt32, dev["node_base"], m, active),
-            dr.gather(mi.UInt32, dev["leaf_base"], m, active),
-            dr.gather(mi.UInt32, dev["internal_count"], m, active),
-            mi.UInt32(zero), mi.UInt32(zero))
+
+def split_of(forest: Forest, node, active=True):
+    """(split value, split axis) of the internal node ``node`` (global index)."""
+    rec = dr.gather(mi.Point2f, forest.nodes, node, active)
+    return rec.x, dr.reinterpret_array(mi.UInt32, rec.y)
 
 
 @dr.syntax
-def _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats, accept):
-    """The stackless traversal behind :func:`radius_query`, one lane per query point."""
-    dev = forest.device()
+def _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats, accept,
+          state):
+    """The while-while walk behind :func:`radius_query`, one lane per query point."""
     width = dr.width(p)
-    r = dr.opaque(mi.Float, r) if isinstance(r, (int, float)) else mi.Float(r)
     r2 = r * r
     total = dr.zeros(result_type, width)
-
-    (active, m, node, mode, i, end, node_base, leaf_base, n_int, nodes_visited,
-     photons_tested) = walk_start(dev, width, first, stop, active)
-    photons_found = dr.zeros(mi.UInt32, width)
+    m = dr.zeros(mi.UInt32, width) + dr.opaque(mi.UInt32, first)
     stop_u = dr.opaque(mi.UInt32, stop)
+    active &= m < stop_u
+    node_base, leaf_base, n_int = map_tables(forest, m, active)
+    node = dr.zeros(mi.UInt32, width)
+    going_down = dr.full(mi.Bool, True, width)
+    nodes_visited = dr.zeros(mi.UInt32, width)
+    photons_tested = dr.zeros(mi.UInt32, width)
+    photons_found = dr.zeros(mi.UInt32, width)
 
     while dr.hint(active, label="partpm_radius_query"):
-        if mode == DESCEND:
-            nodes_visited += 1
-            if node < n_int:
-                axis = dr.gather(mi.UInt32, dev["split_axis"], node_base + node)
-                split = dr.gather(mi.Float, dev["split_value"], node_base + node)
-                node = dr.select(coordinate(p, axis) - r <= split, 2 * node + 1, 2 * node + 2)
-            else:
-                leaf = leaf_base + (node - n_int)
-                i = dr.gather(mi.UInt32, dev["leaf_start"], leaf)
-                end = dr.gather(mi.UInt32, dev["leaf_start"], leaf + 1)
-                mode = mi.UInt32(SCAN)
-        elif mode == SCAN:
-            if i < end:
-                photons_tested += 1
-                q = dr.gather(mi.Point3f, dev["points"], i)
-                dist2 = dr.squared_norm(q - p)
-                found = dist2 <= r2
-                if dr.hint(accept is not None, mode="scalar"):
-                    found &= accept(i, found)
-                if found:
-                    photons_found += 1
-                    total += contribution(i, dist2, found)
-                i += 1
-            else:
-                mode = mi.UInt32(ASCEND)
-        else:
-            if node == 0:
-                # This map is done: restart at the root of the next one, or finish.
+        # To the next leaf the ball reaches (or past the last map).
+        at_leaf = mi.Bool(False)
+        searching = mi.Bool(active)
+        while dr.hint(searching, label="partpm_radius_descend"):
+            if going_down:
+                if dr.hint(with_stats, mode="scalar"):
+                    nodes_visited += 1
+                if node < n_int:
+                    split, axis = split_of(forest, node_base + node)
+                    node = dr.select(coordinate(p, axis) - r <= split, 2 * node + 1,
+                                     2 * node + 2)
+                else:
+                    at_leaf = mi.Bool(True)
+                    searching = mi.Bool(False)
+            elif node == 0:
+                # This map is done: the root of the next one, or the end.
                 m += 1
                 if m < stop_u:
-                    node_base = dr.gather(mi.UInt32, dev["node_base"], m)
-                    leaf_base = dr.gather(mi.UInt32, dev["leaf_base"], m)
-                    n_int = dr.gather(mi.UInt32, dev["internal_count"], m)
-                    mode = mi.UInt32(DESCEND)
+                    node_base, leaf_base, n_int = map_tables(forest, m)
+                    going_down = mi.Bool(True)
                 else:
+                    searching = mi.Bool(False)
                     active = mi.Bool(False)
             else:
                 parent = (node - 1) >> 1
                 to_sibling = mi.Bool(False)
                 if (node & 1) == 1:
-                    # Coming up from a left child: the right one is next if the ball reaches it.
-                    axis = dr.gather(mi.UInt32, dev["split_axis"], node_base + parent)
-                    split = dr.gather(mi.Float, dev["split_value"], node_base + parent)
+                    # Up from a left child: the right one is next if the ball reaches it.
+                    split, axis = split_of(forest, node_base + parent)
                     to_sibling = coordinate(p, axis) + r >= split
                 node = dr.select(to_sibling, node + 1, parent)
-                mode = dr.select(to_sibling, mi.UInt32(DESCEND), mi.UInt32(ASCEND))
+                going_down = to_sibling
 
-    stats = QueryStats(nodes_visited, photons_tested, photons_found)
-    return (total, stats) if with_stats else total
+        # Test the leaf's photons.
+        leaf = leaf_base + (node - n_int)
+        i = dr.gather(mi.UInt32, forest.leaf_table, leaf, at_leaf)
+        end = dr.select(at_leaf, dr.gather(mi.UInt32, forest.leaf_table, leaf + 1, at_leaf), i)
+        while dr.hint(i < end, label="partpm_radius_scan"):
+            if dr.hint(with_stats, mode="scalar"):
+                photons_tested += 1
+            dist2 = dr.squared_norm(photon_position(forest, i) - p)
+            found = dist2 <= r2
+            if dr.hint(accept is not None, mode="scalar"):
+                found &= accept(i, found, state)
+            if found:
+                if dr.hint(with_stats, mode="scalar"):
+                    photons_found += 1
+                total += contribution(i, dist2, found, state)
+            i += 1
+        going_down = mi.Bool(False)
 
-
+    return total, QueryStats(nodes_visited, photons_tested, photons_found)

@@ -1,0 +1,117 @@
+"""Progressive photon mapping: each eye path's statistics, updated pass after pass.
+
+Stochastic progressive photon mapping (Hachisuka and Jensen 2009) keeps, for every eye path (a
+lane of the camera's wavefront: one pixel sample), a photon count N, a flux tau and a radius
+r. Each pass traces new photons and new eye paths; the flux Phi and the count M of the
+photons found within r at the path's visible points are added, and r shrinks so that only
+the fraction ``alpha`` of the new photons is kept:
+
+    N' = N + alpha M,    r'^2 = r^2 (N + alpha M) / (N + M),    tau' = (tau + Phi) r'^2 / r^2
+
+and the radiance after P passes of N_p photons each is tau / (P N_p pi r^2) (our photon powers
+are already divided by N_p, so the N_p drops out). The radius goes to zero and the photon
+count to infinity, so the estimate converges.
+
+The partitioned maps fit this scheme: in a pass every eye path has ONE radius, the same in
+every map, so the pass's Phi and M are sums over the maps (eq. (2) holds pass by pass) and the
+maps stay independent. With the MPI backend one reduction per pass sums Phi and M over the
+ranks before the update.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+__all__ = ["SPPMState", "sppm_update", "accumulate", "RadianceSum"]
+
+
+def sppm_update(N, tau, r2, flux, found, alpha: float):
+    """One SPPM update (the module's formulas); lanes with M = 0 keep their state.
+
+    Returns the new (N, tau, r2)."""
+    M = mi.Float(found)
+    some = M > 0
+    N_new = N + alpha * M
+    ratio = dr.select(some, N_new / dr.select(some, N + M, 1.0), 1.0)
+    r2_new = r2 * ratio
+    tau_new = dr.select(some, (tau + flux) * ratio, tau)
+    return dr.select(some, N_new, N), tau_new, r2_new
+
+
+@dataclass
+class SPPMState:
+    """Per eye path: photon count N, flux tau, squared radius r^2; and the passes done."""
+
+    N: object
+    tau: object
+    r2: object
+    alpha: float
+    passes: int = 0
+
+    @classmethod
+    def start(cls, width: int, radius, alpha: float) -> "SPPMState":
+        return cls(N=dr.zeros(mi.Float, width), tau=dr.zeros(mi.Spectrum, width),
+                   r2=dr.zeros(mi.Float, width) + dr.square(mi.Float(radius)), alpha=alpha)
+
+    @property
+    def radius(self):
+        """Each path's current radius."""
+        return dr.sqrt(self.r2)
+
+    def update(self, flux, found):
+        """Add one pass's flux and photon count (summed over every map and rank)."""
+        self.N, self.tau, self.r2 = sppm_update(self.N, self.tau, self.r2, flux, found,
+                                                self.alpha)
+        self.passes += 1
+        dr.eval(self.N, self.tau, self.r2)
+
+    def radiance(self):
+        """tau / (P pi r^2): the photon maps' radiance after the passes so far."""
+        if self.passes == 0:
+            return dr.zeros(mi.Spectrum, dr.width(self.N))
+        return self.tau * dr.rcp(self.passes * dr.pi * self.r2)
+
+
+@dataclass
+class RadianceSum:
+    """Per eye path: the mean over passes of a radiance already normalised per visible point
+    (the k-nearest-neighbour estimate, whose radius is not the path's)."""
+
+    total: object
+    passes: int = 0
+
+    @classmethod
+    def start(cls, width: int) -> "RadianceSum":
+        return cls(total=dr.zeros(mi.Spectrum, width))
+
+    def update(self, radiance, found=None):
+        self.total = self.total + radiance
+        self.passes += 1
+        dr.eval(self.total)
+
+    def radiance(self):
+        return self.total / max(self.passes, 1)
+
+
+def accumulate(points, values, found, width: int):
+    """Sum every visible point's ``values`` (times its throughput beta) and ``found`` onto its
+    eye path; returns (Spectrum, Float) per lane of a wavefront of ``width``.
+
+    The points are added part by part (one part per depth of the paths, where no lane comes
+    twice), so no two additions race for one lane and the sums are the same in every run."""
+    flux = dr.zeros(mi.Spectrum, width)
+    count = dr.zeros(mi.Float, width)
+    weighted = points.beta * values
+    start = 0
+    for size in points.parts or (len(points),):
+        if size == 0:
+            continue
+        index = dr.arange(mi.UInt32, size) + start
+        lane = dr.gather(mi.UInt32, points.lane, index)
+        dr.scatter_add(flux, dr.gather(mi.Spectrum, weighted, index), lane)
+        dr.scatter_add(count, mi.Float(dr.gather(type(found), found, index)), lane)
+        dr.eval(flux, count)
+        start += size
+    return flux, count
