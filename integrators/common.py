@@ -194,7 +194,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         state = self.new_state(camera.width)
         emitted = dr.zeros(mi.Spectrum, camera.width)
         valid = dr.zeros(mi.Float, camera.width)
-        start = time.perf_counter()
+        start, self._paused = time.perf_counter(), 0.0
         for pass_index in range(self.passes):
             if pass_index:
                 camera.advance()
@@ -213,7 +213,11 @@ class PhotonMapper(mi.SamplingIntegrator):
             t_eye = clock.lap(emitted, valid)
             self._estimate_pass(maps, eye.points, state, camera.width)
             self._add_stats(time_eye=t_eye, passes=1)
-            if self._after_pass(pass_index, state, start, camera.width):
+
+            def image(done=pass_index + 1):
+                """The image after this pass (developed into the film)."""
+                return camera.develop(emitted / done + state.radiance(), valid / done)
+            if self._after_pass(pass_index, state, start, image):
                 break
         self.after_estimate()
         if hasattr(state, "r2"):
@@ -230,11 +234,13 @@ class PhotonMapper(mi.SamplingIntegrator):
         flux, count = self.backend.allreduce([flux, count], self.stats)
         state.update(flux, count)
 
-    def _after_pass(self, pass_index: int, state, start: float, width: int) -> bool:
-        """Progress after a pass; True when the time limit says to stop."""
-        elapsed = time.perf_counter() - start
+    def _after_pass(self, pass_index: int, state, start: float, image) -> bool:
+        """Progress after a pass (``on_pass`` receives it, with ``image()`` to develop the
+        image so far); True when the time limit says to stop. Time spent in ``on_pass`` is
+        not counted."""
+        elapsed = time.perf_counter() - start - self._paused
         done = pass_index + 1
-        info = {"pass": done, "passes": self.passes, "elapsed": elapsed,
+        info = {"pass": done, "passes": self.passes, "elapsed": elapsed, "image": image,
                 "photons": done * self.params.photon_count,
                 "eta": elapsed / done * (self.passes - done),
                 "mean_radius": float(dr.mean(dr.sqrt(state.r2))[0])
@@ -247,7 +253,9 @@ class PhotonMapper(mi.SamplingIntegrator):
                      self.passes, info["photons"], radius, elapsed,
                      ", time limit reached" if stop else f", about {info['eta']:.0f} s left")
         if self.on_pass is not None:
+            t0 = time.perf_counter()
             self.on_pass(info)
+            self._paused += time.perf_counter() - t0
         return stop
 
     # ------------------------------------------------------------------ per sample

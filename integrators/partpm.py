@@ -11,7 +11,8 @@ from mi_partpm.estimate import gather_flux
 from mi_partpm.integrators.common import PhotonMapper
 from mi_partpm.photonmap import fixed_radius
 from mi_partpm.progressive import SPPMState
-from mi_partpm.props import read_choice, read_float, read_int
+from mi_partpm.props import (PROGRESSIVE_RADIUS_FRACTION, RADIUS_FRACTION, read_choice,
+                             read_float, read_int)
 
 log = logging.getLogger("mi_partpm")
 
@@ -52,7 +53,8 @@ class PartPMIntegrator(PhotonMapper):
        * - radius_fraction
          - |float|
          - r as a fraction of the longest side of the scene's bounding box, in (0, 1]; the
-           paper uses about 1/20. Not together with radius. (Default: 0.05)
+           paper uses about 1/20. Not together with radius. (Default: 0.05 with one pass;
+           0.025 with passes > 1, since the radius then only shrinks)
        * - passes
          - |int|
          - Passes, >= 1; 1 is the paper's single pass. (Default: 1)
@@ -125,7 +127,14 @@ class PartPMIntegrator(PhotonMapper):
 
     def search_radius(self, scene: mi.Scene):
         """The fixed radius r of eq. (2) for ``scene``."""
-        return fixed_radius(scene, self.params.radius, self.params.radius_fraction)
+        return fixed_radius(scene, self.params.radius, self.radius_fraction)
+
+    @property
+    def radius_fraction(self) -> float:
+        """The prop, or its default: 1/20 for one pass, 1/40 for a progressive render."""
+        if self.params.radius_fraction is not None:
+            return self.params.radius_fraction
+        return RADIUS_FRACTION if self.passes == 1 else PROGRESSIVE_RADIUS_FRACTION
 
     def before_estimate(self):
         log.info("estimate: radius %.4g, %d pass%s ...", self.radius, self.passes,
@@ -145,7 +154,7 @@ class PartPMIntegrator(PhotonMapper):
     def to_string(self):
         p = self.params
         radius = f"radius = {p.radius}" if p.radius is not None \
-            else f"radius_fraction = {p.radius_fraction}"
+            else f"radius_fraction = {self.radius_fraction}"
         return (f"PartPMIntegrator[photon_count = {p.photon_count}, map_count = "
                 f"{self.map_count}, {radius}, passes = {self.passes}, alpha = {self.alpha}, "
                 f"time_limit = {self.time_limit}, {self.common_props_text()}, "

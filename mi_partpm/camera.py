@@ -36,7 +36,8 @@ class CameraPass:
             raise ValueError(f"the film ({film_size[0]} x {film_size[1]}) at spp = {self.spp} "
                              f"has {self.width:,} samples, more than one wavefront of 2^32 "
                              f"holds: lower spp or the resolution")
-        self.film.prepare(list(aovs))
+        self.aovs = list(aovs)
+        self.film.prepare(self.aovs)
         self.sampler.set_samples_per_wavefront(self.spp)
         self.sampler.seed(seed, self.width)
         idx = dr.arange(mi.UInt32, self.width)
@@ -81,8 +82,10 @@ class CameraPass:
 
     def develop(self, value, alpha, develop: bool = True):
         """Put one ``value`` (Spectrum) and ``alpha`` per sample into the film at the last
-        pass's sample positions; return the developed image (or an empty tensor)."""
+        pass's sample positions; return the developed image (or an empty tensor). The film
+        is cleared first, so this can be called after any pass (a checkpoint)."""
         film = self.film
+        film.prepare(self.aovs)
         block = film.create_block()
         block.set_offset(film.crop_offset())
         block.set_coalesce(block.coalesce() and self.spp >= 4)

@@ -154,6 +154,8 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         # least one more segment towards the light.
         if depth + 1 < limit:
             smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth)
+            # One kernel computes the hit and the mask before they are gathered from.
+            dr.eval(si, bsdf, smooth, beta)
             index = dr.compress(smooth)
             if dr.width(index):
                 parts.append(VisiblePoints(

@@ -2,6 +2,8 @@
 
     partpm render SCENE [options] -o OUT.exr     render with partpm, pm or Mitsuba's path
     partpm compare SCENE [options] --out DIR     pm vs partpm vs a path-traced reference
+    partpm converge SCENE [options] --out DIR    error against time: progressive partpm, pm,
+                                                 Mitsuba's path
     partpm speedup SCENE [options] --out DIR     the paper's speedup experiment (figures 5-6)
     partpm bench [options]                       kd-tree and tracer against scipy, pykdtree
                                                  and Mitsuba's path tracer
@@ -18,7 +20,8 @@ import logging
 import sys
 
 from .common import UsageError, parse_resolution
-from .experiments import run_bench, run_compare, run_hwsim, run_scaling, run_speedup
+from .experiments import (run_bench, run_compare, run_converge, run_hwsim, run_scaling,
+                          run_speedup)
 from .parser import build_parser
 from .render import format_ranks, run_render
 
@@ -26,7 +29,8 @@ __all__ = ["main", "parse_resolution", "format_ranks"]
 
 #: Subcommand -> the function that runs it.
 COMMANDS = {"render": run_render, "compare": run_compare, "speedup": run_speedup,
-            "bench": run_bench, "hwsim": run_hwsim, "scaling": run_scaling}
+            "bench": run_bench, "hwsim": run_hwsim, "scaling": run_scaling,
+            "converge": run_converge}
 
 
 def main(argv=None) -> int:

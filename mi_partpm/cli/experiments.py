@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from .common import UsageError, int_list, last_line, progress, setup
 
-__all__ = ["run_compare", "run_speedup", "run_bench", "run_hwsim", "run_scaling"]
+__all__ = ["run_compare", "run_speedup", "run_bench", "run_hwsim", "run_scaling",
+           "run_converge"]
 
 
 def run_compare(args) -> int:
@@ -94,4 +95,24 @@ def run_scaling(args) -> int:
     if not args.quiet:
         print(format_scaling(rows))
         print(f"wrote    {args.out}/scaling.csv, scaling.json and collective.json")
+    return 0
+
+
+def run_converge(args) -> int:
+    setup(args)
+    from ..experiments.converge import ConvergeSettings, format_converge, run_converge as run
+    settings = ConvergeSettings(
+        scene=args.scene, seconds=args.time, resolution=args.resolution, spp=args.spp,
+        photons=args.photons, maps=args.maps, radius_fraction=args.radius_fraction,
+        alpha=args.alpha, k=args.k, reference_spp=args.reference_spp,
+        methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
+        seed=args.seed, data_dir=args.data)
+    try:
+        settings.check()
+        result = run(settings, args.out, progress=progress(args))
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(last_line(e)) from None
+    if not args.quiet:
+        print(format_converge(result))
+        print(f"wrote    {args.out}/converge.csv, converge.json, converge.png, reference.exr")
     return 0

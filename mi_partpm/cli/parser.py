@@ -60,10 +60,21 @@ def _render_options(sub):
     g.add_argument("--radius", type=positive_float("--radius"),
                    help="search radius in world units (partpm)")
     g.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
-                   help="radius as a fraction of the scene's longest side (default 0.05)")
+                   help="radius as a fraction of the scene's longest side (default 0.05; "
+                        "0.025 with --passes > 1)")
     r.add_argument("--max-radius", type=positive_float("--max-radius"),
                    help="cap of the kNN radius (pm; default: none)")
-    r.add_argument("--max-depth", type=int, default=-1, help="longest path (-1: unlimited)")
+    r.add_argument("--max-depth", type=int, default=-1,
+                   help="longest light path in segments, as for Mitsuba's path (-1: unlimited)")
+    r.add_argument("--passes", type=positive_int("--passes"),
+                   help="progressive passes of partpm (default 1: the paper's single pass)")
+    r.add_argument("--alpha", type=positive_float("--alpha", 1.0),
+                   help="fraction of a pass's photons kept by the radius reduction, in (0, 1) "
+                        "(default 0.7)")
+    r.add_argument("--time", type=positive_float("--time"),
+                   help="stop after the pass during which this many seconds have passed")
+    r.add_argument("--checkpoint-every", type=positive_int("--checkpoint-every"), metavar="K",
+                   help="write the image so far every K passes")
     r.add_argument("--backend", choices=("local", "mpi"), default="local",
                    help="where the maps run: this process, or the ranks of an MPI job "
                         "(mpiexec -n P partpm render ... --backend mpi)")
@@ -82,6 +93,35 @@ def _experiment_options(sub):
     c.add_argument("--reference-spp", type=positive_int("--reference-spp"), default=512,
                    help="samples per pixel of the path-traced reference (default 512)")
     c.add_argument("--out", help="output directory")
+
+    v = sub.add_parser("converge", help="error against wall time: progressive partpm, pm and "
+                                        "Mitsuba's path against a path-traced reference")
+    v.add_argument("scene", help="built-in scene name or Mitsuba XML file")
+    v.add_argument("--time", type=positive_float("--time"), default=25.0,
+                   help="seconds each method may take (default 25)")
+    v.add_argument("--resolution", type=parse_resolution, default=(160, 160),
+                   help="film size WxH (default 160x160)")
+    v.add_argument("--spp", type=positive_int("--spp"), default=4,
+                   help="partpm's eye samples per pixel and pass (default 4)")
+    v.add_argument("--photons", type=positive_int("--photons"), default=100_000,
+                   help="partpm's photons per pass (default 100000)")
+    v.add_argument("--maps", type=positive_int("--maps"), default=8,
+                   help="partpm's maps (default 8)")
+    v.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
+                   help="partpm's initial radius over the scene (default: partpm's, 0.025 for "
+                        "a progressive render)")
+    v.add_argument("--alpha", type=positive_float("--alpha", 1.0), default=0.7,
+                   help="partpm's alpha (default 0.7)")
+    v.add_argument("--k", type=positive_int("--k"), default=50, help="pm's k (default 50)")
+    v.add_argument("--reference-spp", type=positive_int("--reference-spp"), default=8192,
+                   help="samples per pixel of the path-traced reference (default 8192)")
+    v.add_argument("--methods", default="partpm,pm,path",
+                   help="comma-separated methods (default partpm,pm,path)")
+    v.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    v.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
+    v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
+    v.add_argument("--out", required=True, help="output directory (CSV, JSON, plot, reference)")
+    v.add_argument("-q", "--quiet", action="store_true", help="print only errors")
 
     e = sub.add_parser("speedup", help="the paper's experiment: per-map density-estimation "
                                        "time vs the number of maps (figures 5-6)")

@@ -23,6 +23,12 @@ def integrator_desc(args) -> dict:
     else:
         desc = {"type": args.integrator, "photon_count": args.photons, "seed": args.seed,
                 "max_depth": args.max_depth, "direct": args.direct}
+    progressive = [o for o, v in (("--passes", args.passes), ("--alpha", args.alpha),
+                                  ("--time", args.time),
+                                  ("--checkpoint-every", args.checkpoint_every)) if v]
+    if progressive and args.integrator != "partpm":
+        raise UsageError(f"{', '.join(progressive)} apply to --integrator partpm only (the "
+                         f"progressive photon mapper)")
     if args.integrator == "pm":
         unused = [o for o, v in (("--maps", args.maps), ("--radius", args.radius),
                                  ("--radius-fraction", args.radius_fraction)) if v]
@@ -38,6 +44,10 @@ def integrator_desc(args) -> dict:
             raise UsageError("--k and --max-radius apply to --integrator pm only")
         desc["map_count"] = args.maps or 8
         desc["backend"] = args.backend
+        for key, value in (("passes", args.passes), ("alpha", args.alpha),
+                           ("time_limit", args.time)):
+            if value is not None:
+                desc[key] = value
         if args.radius is not None:
             desc["radius"] = args.radius
         elif args.radius_fraction is not None:
@@ -80,6 +90,8 @@ def run_render(args) -> int:
     film = scene.sensors()[0].film()
     log.info("scene %s: %dx%d, %s", args.scene, film.size()[0], film.size()[1], integrator)
     seconds = {"load": clock.lap()}
+    if args.checkpoint_every:
+        integrator.on_pass = _checkpoints(args.checkpoint_every, out, integrator)
     try:
         image = mi.render(scene, integrator=integrator, seed=args.seed)
     except (ValueError, RuntimeError, MemoryError) as e:
@@ -93,6 +105,22 @@ def run_render(args) -> int:
     if not args.quiet:
         print(_summary(stats, seconds, out))
     return 0
+
+
+def _checkpoints(every: int, out: Path, integrator):
+    """An ``on_pass`` that writes the image so far to ``out`` every ``every`` passes."""
+    import mitsuba as mi
+
+    def on_pass(info):
+        backend = getattr(integrator, "backend", None)
+        if info["pass"] % every or (backend is not None and not backend.is_root):
+            return
+        out.parent.mkdir(parents=True, exist_ok=True)
+        image = info["image"]()
+        mi.Bitmap(image).write(str(out))
+        mi.util.write_bitmap(str(out.with_suffix(".png")), image, write_async=False)
+        log.info("checkpoint: pass %d written to %s", info["pass"], out)
+    return on_pass
 
 
 def _write(args, out: Path, image, stats: dict, seconds: dict, resolution):
@@ -121,8 +149,10 @@ def _summary(stats: dict, seconds: dict, out: Path) -> str:
             search = f"k = {stats['k']}, mean kNN radius {stats['mean_knn_radius']:.4g}"
         else:
             search = f"radius {stats['radius']:.4g}"
-        lines.append(f"photons  {stats['photons_emitted']} emitted, {stats['photons_stored']} "
-                     f"stored in {stats['map_count']} maps, {search}")
+        passes = stats.get("passes", 1)
+        per_pass = f" per pass, {passes} passes" if passes > 1 else ""
+        lines.append(f"photons  {stats['photons_emitted']} emitted{per_pass}, "
+                     f"{stats['photons_stored']} stored in {stats['map_count']} maps, {search}")
     if stats.get("ranks"):
         lines.append(format_ranks(stats["ranks"]))
     lines.append(f"wrote    {out} and {out.with_suffix('.png')}")

@@ -1,0 +1,262 @@
+"""``partpm converge``: error against wall time for progressive partpm, pm and Mitsuba's path.
+
+Every method renders the same scene, film and camera, and each image is compared with one
+reference: Mitsuba's ``path`` at a high sample count, rendered in chunks of
+``CHUNK_SPP`` samples with different seeds (a single wavefront of that many samples would not
+fit in memory) and cached in the output directory (``reference.exr`` and ``reference.json``,
+reused when the scene, size, sample count and code version match).
+
+- **partpm**: one progressive render with ``time_limit = seconds``; after passes 1, 2, 3, 4,
+  6, 8, 12, ... the image so far is developed and measured (the time spent doing so is not
+  counted).
+- **path**: renders of 1, 2, 4, ... samples per pixel, each timed on its own, until one takes
+  longer than ``seconds``.
+- **pm**: single-pass renders of 10^4, 2 x 10^4, 4 x 10^4, ... photons with k nearest, until
+  one takes longer than ``seconds``.
+
+Each method runs once untimed at a tiny size first, so no curve pays for compiling kernels.
+The error is the relative MSE of :func:`mi_partpm.experiments.metrics.rel_mse` on the linear,
+unclamped images. Writes ``converge.csv`` (method, seconds, relMSE, setting),
+``converge.json`` and ``converge.png`` (log-log).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Optional, Tuple
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from . import metrics
+from .provenance import code_version
+from ..props import check_float, check_int
+from ..scenes import check_scene, load_scene
+from ..timing import timed
+
+__all__ = ["ConvergeSettings", "run_converge", "format_converge", "path_reference",
+           "METHODS", "CHUNK_SPP"]
+
+log = logging.getLogger("mi_partpm")
+
+#: The methods a run can compare.
+METHODS = ("partpm", "pm", "path")
+
+#: Samples per pixel of one chunk of the reference (rendered and averaged chunk by chunk).
+CHUNK_SPP = 64
+
+
+@dataclass
+class ConvergeSettings:
+    """What :func:`run_converge` renders."""
+
+    scene: str = "cornell_box"
+    seconds: float = 25.0
+    resolution: Tuple[int, int] = (160, 160)
+    spp: int = 4                    # partpm: eye samples per pixel and pass
+    photons: int = 100_000          # partpm: photons per pass
+    maps: int = 8
+    radius_fraction: Optional[float] = None   # partpm's initial radius (None: its default)
+    alpha: float = 0.7
+    k: int = 50                     # pm
+    reference_spp: int = 8192
+    methods: Tuple[str, ...] = METHODS
+    seed: int = 0
+    data_dir: Optional[str] = None
+
+    def check(self):
+        check_float("seconds", self.seconds, low=0.0)
+        for v in self.resolution:
+            check_int("resolution", v, low=1)
+        check_int("spp", self.spp, low=1)
+        check_int("photons", self.photons, low=1)
+        check_int("maps", self.maps, low=1, high=self.photons)
+        if self.radius_fraction is not None:
+            check_float("radius_fraction", self.radius_fraction, low=0.0, high=1.0)
+        check_float("alpha", self.alpha, low=0.0, high=1.0, high_open=True)
+        check_int("k", self.k, low=1)
+        check_int("reference_spp", self.reference_spp, low=1)
+        unknown = [m for m in self.methods if m not in METHODS]
+        if unknown or not self.methods:
+            raise ValueError(f"methods must be some of {', '.join(METHODS)}, got "
+                             f"{', '.join(self.methods) or 'none'}")
+
+
+def _scene(s: ConvergeSettings, spp: int = 1):
+    scene = load_scene(s.scene, resolution=s.resolution, spp=spp, data_dir=s.data_dir)
+    check_scene(scene, s.scene)
+    return scene
+
+
+def _image(img) -> np.ndarray:
+    return np.array(img, dtype=np.float64)[..., :3]
+
+
+def path_reference(s: ConvergeSettings, out: Path, say) -> np.ndarray:
+    """Mitsuba's ``path`` at ``reference_spp``, averaged over chunks; cached in ``out``."""
+    meta = {"scene": s.scene, "resolution": list(s.resolution), "spp": s.reference_spp,
+            "seed": s.seed, "code": code_version()}
+    exr, info = out / "reference.exr", out / "reference.json"
+    if exr.is_file() and info.is_file() and json.loads(info.read_text()) == meta:
+        say(f"reference: reusing {exr}")
+        return _image(mi.Bitmap(str(exr)))
+    scene = _scene(s)
+    chunks = max(1, -(-s.reference_spp // CHUNK_SPP))
+    total = None
+    for c in range(chunks):
+        spp = min(CHUNK_SPP, s.reference_spp - c * CHUNK_SPP)
+        say(f"reference: path, chunk {c + 1} of {chunks} ({spp} spp)")
+        img = _image(mi.render(scene, integrator=mi.load_dict({"type": "path"}), spp=spp,
+                               seed=1_000_003 + s.seed * 10_007 + c)) * spp
+        total = img if total is None else total + img
+    ref = total / s.reference_spp
+    mi.Bitmap(ref.astype(np.float32)).write(str(exr))
+    info.write_text(json.dumps(meta, indent=2) + "\n")
+    return ref
+
+
+def _partpm(s: ConvergeSettings, ref, say) -> list:
+    scene = _scene(s, s.spp)
+    desc = {"type": "partpm", "photon_count": s.photons, "map_count": s.maps,
+            "alpha": s.alpha, "seed": s.seed}
+    if s.radius_fraction is not None:
+        desc["radius_fraction"] = s.radius_fraction
+    mi.render(_scene(s, 1), integrator=mi.load_dict({**desc, "passes": 2}))   # warm-up
+    rows = []
+    checkpoints = {1, 2, 3, 4} | {int(round(2 ** (e / 2))) for e in range(4, 60)}
+
+    def on_pass(info):
+        if info["pass"] in checkpoints or info["pass"] == info["passes"]:
+            err = metrics.rel_mse(_image(info["image"]()), ref)
+            rows.append({"method": "partpm", "seconds": info["elapsed"], "rel_mse": err,
+                         "setting": f"{info['pass']} passes"})
+            say(f"partpm: pass {info['pass']}, {info['elapsed']:.1f} s, relMSE {err:.5f}, "
+                f"mean radius {info['mean_radius']:.4g}")
+    integrator = mi.load_dict({**desc, "passes": 1_000_000, "time_limit": s.seconds})
+    integrator.on_pass = on_pass
+    mi.render(scene, integrator=integrator, seed=s.seed)
+    return rows
+
+
+def _doubling(method: str, s: ConvergeSettings, ref, say, render, start: int, unit: str):
+    """Renders at ``start``, 2 ``start``, ... until one takes longer than ``seconds``."""
+    render(max(1, start // 4))                    # warm-up
+    rows, amount = [], start
+    while True:
+        try:
+            img, seconds = render(amount)
+        except RuntimeError as e:
+            if "MemoryGuardError" not in repr(e.__cause__) and "needs about" not in str(e):
+                raise
+            say(f"{method}: {amount} {unit} do not fit in memory; the curve stops here")
+            return rows
+        err = metrics.rel_mse(img, ref)
+        rows.append({"method": method, "seconds": seconds, "rel_mse": err,
+                     "setting": f"{amount} {unit}"})
+        say(f"{method}: {amount} {unit}, {seconds:.1f} s, relMSE {err:.5f}")
+        if seconds > s.seconds:
+            return rows
+        amount *= 2
+
+
+def _path(s: ConvergeSettings, ref, say) -> list:
+    scene = _scene(s)
+    integrator = mi.load_dict({"type": "path"})
+
+    def render(spp):
+        img, seconds = timed(lambda: mi.render(scene, integrator=integrator, spp=spp,
+                                               seed=s.seed))
+        return _image(img), seconds
+    return _doubling("path", s, ref, say, render, 1, "spp")
+
+
+def _pm(s: ConvergeSettings, ref, say) -> list:
+    scene = _scene(s, s.spp)
+
+    def render(photons):
+        integrator = mi.load_dict({"type": "pm", "photon_count": photons,
+                                   "k": min(s.k, photons), "seed": s.seed})
+        img, seconds = timed(lambda: mi.render(scene, integrator=integrator, seed=s.seed))
+        return _image(img), seconds
+    return _doubling("pm", s, ref, say, render, 10_000, "photons")
+
+
+def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
+    """Run every method of ``settings``; write the CSV, JSON and plot into ``out_dir``."""
+    settings.check()
+    s, say = settings, progress or (lambda *a: None)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ref = path_reference(s, out, say)
+    runners = {"partpm": _partpm, "pm": _pm, "path": _path}
+    rows = []
+    for method in s.methods:
+        rows += runners[method](s, ref, say)
+    result = {"settings": {**asdict(s), "resolution": list(s.resolution),
+                           "methods": list(s.methods)},
+              "code": code_version(), "rows": rows,
+              "at": {str(t): {m: _error_at(rows, m, t) for m in s.methods}
+                     for t in sorted({5.0, s.seconds}) if t <= s.seconds}}
+    with open(out / "converge.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["method", "seconds", "rel_mse", "setting"])
+        writer.writeheader()
+        writer.writerows(rows)
+    (out / "converge.json").write_text(json.dumps(result, indent=2) + "\n")
+    _plot(rows, out / "converge.png", s)
+    return result
+
+
+def _error_at(rows, method: str, seconds: float):
+    """The error of ``method`` at ``seconds``: log-log interpolation between its runs (None
+    before its first run)."""
+    pts = sorted((r["seconds"], r["rel_mse"]) for r in rows if r["method"] == method)
+    if not pts or seconds < pts[0][0]:
+        return None
+    t = np.log([p[0] for p in pts])
+    e = np.log([p[1] for p in pts])
+    return float(np.exp(np.interp(np.log(seconds), t, e)))
+
+
+def _plot(rows, path, s: ConvergeSettings):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5.5, 4.2))
+    styles = {"partpm": "o-", "pm": "s--", "path": "^-"}
+    labels = {"partpm": f"partpm, progressive ({s.maps} maps, {s.photons:,} photons and "
+                        f"{s.spp} spp per pass)",
+              "pm": f"pm (k = {s.k}), more photons", "path": "Mitsuba path, more spp"}
+    for method in s.methods:
+        pts = sorted((r["seconds"], r["rel_mse"]) for r in rows if r["method"] == method)
+        if pts:
+            ax.plot(*zip(*pts), styles[method], label=labels[method], markersize=4)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("wall time (s)")
+    ax.set_ylabel(f"relative MSE vs path at {s.reference_spp} spp")
+    ax.set_title(f"{s.scene}, {s.resolution[0]}x{s.resolution[1]}", fontsize=10)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def format_converge(result) -> str:
+    """The error of every method at 5 s and at the full time, as a small table."""
+    s = result["settings"]
+    times = sorted({t for t in (5.0, s["seconds"]) if t <= s["seconds"]})
+    lines = [f"{s['scene']} {s['resolution'][0]}x{s['resolution'][1]}: relMSE vs path at "
+             f"{s['reference_spp']} spp",
+             f"{'method':8} " + " ".join(f"{f'at {t:g} s':>12}" for t in times)]
+    for m in s["methods"]:
+        cells = []
+        for t in times:
+            v = _error_at(result["rows"], m, t)
+            cells.append(f"{v:12.5f}" if v is not None else f"{'-':>12}")
+        lines.append(f"{m:8} " + " ".join(cells))
+    return "\n".join(lines)

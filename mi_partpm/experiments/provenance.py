@@ -1,0 +1,65 @@
+"""Where a result came from: the code that made it and the machine it ran on.
+
+:func:`code_version` is a hash of the project's source files (the renderer, the plugins and
+hwsim), so a cached run is reused only by the code that made it, with or without git;
+:func:`machine` describes the machine. Every experiment records both beside its results.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import subprocess
+from functools import lru_cache
+from pathlib import Path
+
+__all__ = ["code_version", "machine", "git_commit"]
+
+_ROOT = Path(__file__).resolve().parents[2]
+#: The source folders whose files make a result (relative to the project's root).
+SOURCES = ("mi_partpm", "integrators", "hwsim")
+
+
+@lru_cache(maxsize=1)
+def code_version() -> str:
+    """SHA-256 (first 16 hex digits) of every ``.py``, ``.xml`` and ``.toml`` file of
+    :data:`SOURCES`, in path order."""
+    digest = hashlib.sha256()
+    for folder in SOURCES:
+        base = _ROOT / folder
+        files = sorted(p for p in base.rglob("*") if p.suffix in (".py", ".xml", ".toml")
+                       and "__pycache__" not in p.parts)
+        for path in files:
+            digest.update(str(path.relative_to(_ROOT)).encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def git_commit() -> str:
+    """The checkout's commit (with ``-dirty`` when files differ from it), or '' without git."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=_ROOT,
+                                capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=_ROOT, capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    if commit.returncode != 0:
+        return ""
+    return commit.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+
+def machine() -> dict:
+    """The machine: processor, cores, memory, OS, Python, Mitsuba and Dr.Jit versions."""
+    import drjit as dr
+    import mitsuba as mi
+    memory = None
+    try:
+        with open("/proc/meminfo") as f:
+            memory = int(f.readline().split()[1]) * 1024
+    except OSError:
+        pass
+    return {"processor": platform.processor() or platform.machine(),
+            "cores": os.cpu_count(), "memory_bytes": memory, "os": platform.platform(),
+            "python": platform.python_version(), "mitsuba": mi.__version__,
+            "drjit": dr.__version__, "threads": dr.thread_count()}
