@@ -15,16 +15,18 @@ pass):
    (:mod:`mi_partpm.progressive`).
 
 After the last pass each path's radiance goes into the film, as Mitsuba's own render loop
-puts its samples. A subclass says how the radiance at a visible point is estimated
-(:meth:`PhotonMapper.estimate_points`), what it accumulates over passes
-(:meth:`PhotonMapper.new_state`) and reads its own props
-(:meth:`PhotonMapper.read_estimator_props`). Where the maps run is the backend object chosen
-once in the constructor; the phases never ask which one it is.
+puts its samples. A subclass says which photon maps a pass builds (:class:`Layer`: the global
+map, a caustic map) and which terms make up a path's radiance (:class:`Term`: an estimate at
+the visible points, a final gather, each with what it accumulates over the passes), and reads
+its own props (:meth:`PhotonMapper.read_estimator_props`). Where the maps run is the backend
+object chosen once in the constructor; the phases never ask which one it is.
 """
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
+from typing import Callable
 
 import drjit as dr
 import mitsuba as mi
@@ -35,19 +37,51 @@ from mi_partpm.backends import LocalBackend
 from mi_partpm.camera import CameraPass
 from mi_partpm.eyepath import eye_paths
 from mi_partpm.photonmap import build_photon_maps
-from mi_partpm.progressive import accumulate
 from mi_partpm.props import UNLIMITED_DEPTH, read_photon_map_params
 from mi_partpm.timing import Stopwatch
 from mi_partpm.trace import map_sizes, stream_seed, trace_photons
 
 log = logging.getLogger("mi_partpm")
 
-__all__ = ["PhotonMapper"]
+__all__ = ["PhotonMapper", "Layer", "Term"]
+
+
+def _radiance(terms):
+    """The photon maps' radiance of every eye path: the sum of the terms'."""
+    total = terms[0].state.radiance()
+    for term in terms[1:]:
+        total = total + term.state.radiance()
+    return total
 
 
 def _as_int(seed) -> int:
     """``render()``'s seed as a Python int (Mitsuba may pass a 1-wide ``UInt32``)."""
     return seed if isinstance(seed, int) else int(dr.ravel(mi.UInt32(seed))[0])
+
+
+@dataclass
+class Layer:
+    """A set of n partitioned photon maps rebuilt every pass: the global maps or the
+    caustic maps. ``paths`` says which photons they keep (:data:`mi_partpm.trace.PATHS`);
+    ``salt`` keeps their streams apart from other layers'."""
+
+    name: str
+    photon_count: int
+    paths: str = "all"
+    salt: int = 0
+    maps: object = None
+    stored: int = 0
+
+
+@dataclass
+class Term:
+    """A part of every eye path's radiance: ``compute(points, width)`` returns this pass's
+    (flux, photons found) per path, summed over the maps of this process; the backend sums
+    them over the processes and ``state`` (:mod:`mi_partpm.progressive`) accumulates them."""
+
+    name: str
+    state: object
+    compute: Callable
 
 
 class PhotonMapper(mi.SamplingIntegrator):
@@ -58,8 +92,9 @@ class PhotonMapper(mi.SamplingIntegrator):
 
     def __init__(self, props=None):
         super().__init__(props if props is not None else mi.Properties())
-        self.maps = None
         self.radius = None
+        self._layers = []
+        self._pass_seed = 0
         self.stats = {}
         self.passes, self.alpha, self.time_limit = 1, 0.7, 0.0
         self.on_pass = None
@@ -78,14 +113,13 @@ class PhotonMapper(mi.SamplingIntegrator):
         """The (initial) search radius of the estimate (None: chosen per query)."""
         return None
 
-    def new_state(self, width: int):
-        """What each of ``width`` eye paths accumulates over the passes
-        (:mod:`mi_partpm.progressive`)."""
-        raise NotImplementedError
+    def layers(self) -> list:
+        """The photon maps every pass builds (:class:`Layer`); by default the global maps."""
+        return [Layer("global", self.params.photon_count)]
 
-    def estimate_points(self, maps, points, state):
-        """Per visible point: (value, photons found), summed onto its eye path and passed to
-        ``state.update`` once all maps and processes have added theirs."""
+    def terms(self, layers: list, width: int, scene: mi.Scene) -> list:
+        """The parts of an eye path's radiance (:class:`Term`) for a wavefront of
+        ``width`` paths, made once per render."""
         raise NotImplementedError
 
     def before_estimate(self):
@@ -96,62 +130,78 @@ class PhotonMapper(mi.SamplingIntegrator):
 
     # ------------------------------------------------------------------ phases
 
-    def build_maps(self, scene: mi.Scene, sensor=0, spp: int = 0, render_seed: int = 0,
-                   pass_index: int = 0):
-        """Phases 1 and 2: trace every owned map's photons and build its kd-tree.
+    def build_maps(self, scene: mi.Scene, layer: Layer = None, sensor=0, spp: int = 0,
+                   render_seed: int = 0, pass_index: int = 0):
+        """Phases 1 and 2 for one layer (default: the first, the global maps): trace every
+        owned map's photons and build its kd-tree; ``layer.maps`` holds them until the next
+        pass, and they are returned.
 
         ``sensor`` and ``spp`` (0: the sensor's sampler's) size the eye pass for the memory
         guard; ``render_seed`` and ``pass_index`` select the photon streams with the ``seed``
         prop (:func:`~mi_partpm.trace.stream_seed`).
         """
         p = self.params
-        if self.radius is None:
-            self.radius = self.search_radius(scene)
+        if layer is None:
+            if self.radius is None:
+                self.radius = self.search_radius(scene)
+            self._layers = self.layers()
+            layer = self._layers[0]
         owned = self.backend.owned_maps(self.map_count)
-        traced_here = int(map_sizes(p.photon_count, self.map_count)[owned].sum())
-        sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
-        film = sensor.film().crop_size()
-        spp = int(spp) or sensor.sampler().sample_count()
+        traced_here = int(map_sizes(layer.photon_count, self.map_count)[owned].sum())
         bounded = p.max_depth != UNLIMITED_DEPTH
         # Photon paths leave one segment at least for the eye path.
         photon_depth = p.max_depth - 1 if bounded else UNLIMITED_DEPTH
-
-        def estimate(ratio=None):
-            return memory.estimate_render(traced_here, photon_depth, int(film[0]),
-                                          int(film[1]), spp, ratio)
-        if pass_index == 0:
-            # Before any photon is traced: the estimate from the props and the film.
-            memory.check_fits(estimate(), f"photon_count = {p.photon_count}")
-
-        def check_during(ratio, done):
-            memory.check_fits(estimate(ratio), f"photon_count = {p.photon_count} (projected "
-                                               f"from the first {done:,} photons traced)")
-
+        guard = self._memory_guard(scene, sensor, spp, photon_depth, layer, pass_index)
         clock = Stopwatch()
-        self.maps = None            # the last pass's maps are freed before the next are traced
-        photons = trace_photons(scene, p.photon_count, self.map_count,
-                                stream_seed(p.seed, render_seed, pass_index), photon_depth,
-                                p.rr_depth, maps=owned,
-                                min_bounce=2 if p.direct == "nee" else 1,
+        layer.maps = None           # the last pass's maps are freed before the next are traced
+        photons = trace_photons(scene, layer.photon_count, self.map_count,
+                                stream_seed(p.seed ^ layer.salt, render_seed, pass_index),
+                                photon_depth, p.rr_depth, maps=owned,
+                                min_bounce=self.min_bounce(), paths=layer.paths,
                                 progress=lambda line: log.debug("trace: %s", line),
-                                memory_check=check_during)
+                                memory_check=guard)
         # The owned maps become this process's maps 0 .. len(owned)-1.
         local_of = np.searchsorted(owned, np.arange(self.map_count)).astype(np.uint32)
         photons = photons.with_maps(dr.gather(mi.UInt32, mi.UInt32(local_of), photons.maps),
                                     len(owned))
         t_trace = clock.lap()
-        self.maps = build_photon_maps(photons, keep_bounce=bounded)
-        stored, segments = len(photons), photons.segments
+        layer.maps = build_photon_maps(photons, keep_bounce=bounded)
+        layer.stored, segments = len(photons), photons.segments
         del photons
         t_build = clock.lap()
-        self._add_stats(time_trace=t_trace, time_build=t_build, photons_stored=stored,
-                        photons_traced=traced_here, segments=segments)
-        self.stats.update(map_bytes=max(self.stats.get("map_bytes", 0), self.maps.nbytes),
+        prefix = "" if layer.name == "global" else f"{layer.name}_"
+        self._add_stats(time_trace=t_trace, time_build=t_build, segments=segments,
+                        **{f"{prefix}photons_stored": layer.stored,
+                           f"{prefix}photons_traced": traced_here})
+        self.stats.update(map_bytes=max(self.stats.get("map_bytes", 0), layer.maps.nbytes),
                           maps_owned=owned.tolist())
-        if stored == 0 and pass_index == 0:
-            log.warning("no photon was stored: the scene has no surface with a non-delta "
-                        "BSDF lit by its emitters; only emitted light will show")
-        return self.maps
+        return layer.maps
+
+    def min_bounce(self) -> int:
+        """The fewest segments a stored photon has: 2 when direct light is sampled."""
+        return 2 if self.params.direct == "nee" else 1
+
+    def _memory_guard(self, scene, sensor, spp, photon_depth, layer, pass_index):
+        """Check the render fits before the first pass; return the check to repeat while
+        tracing (with the measured photons stored per photon emitted)."""
+        sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        film = sensor.film().crop_size()
+        spp = int(spp) or sensor.sampler().sample_count()
+        traced = sum(int(map_sizes(l.photon_count, self.map_count)[
+            self.backend.owned_maps(self.map_count)].sum()) for l in self._layers)
+
+        def estimate(ratio=None):
+            return memory.estimate_render(traced, photon_depth, int(film[0]), int(film[1]),
+                                          spp, ratio)
+        what = f"photon_count = {self.params.photon_count}"
+        if pass_index == 0 and layer is self._layers[0]:
+            # Before any photon is traced: the estimate from the props and the film.
+            memory.check_fits(estimate(), what)
+
+        def check_during(ratio, done):
+            memory.check_fits(estimate(ratio), f"{what} (projected from the first "
+                                               f"{done:,} photons traced)")
+        return check_during
 
     def _add_stats(self, **values):
         for key, value in values.items():
@@ -176,9 +226,9 @@ class PhotonMapper(mi.SamplingIntegrator):
                              f": render with develop=True")
         with self.backend.running():
             seed = _as_int(seed)
+            self.radius = self.search_radius(scene)
             self._start_stats(seed)
             camera = CameraPass(scene, sensor, seed, spp, self.aov_names())
-            self.radius = self.stats["radius"] = self.search_radius(scene)
             L, alpha = self._passes(scene, camera, seed)
             image = camera.develop(L, alpha, develop)
             if evaluate:
@@ -189,63 +239,91 @@ class PhotonMapper(mi.SamplingIntegrator):
 
     def _passes(self, scene, camera: CameraPass, seed: int):
         """The passes of a render: per eye path, the mean light not from the maps and the
-        state of the maps' estimate; returns (radiance, alpha) per sample."""
+        terms' states; returns (radiance, alpha) per sample."""
         p = self.params
-        state = self.new_state(camera.width)
+        self._layers = self.layers()
+        terms = self.terms(self._layers, camera.width, scene)
         emitted = dr.zeros(mi.Spectrum, camera.width)
         valid = dr.zeros(mi.Float, camera.width)
         start, self._paused = time.perf_counter(), 0.0
         for pass_index in range(self.passes):
             if pass_index:
                 camera.advance()
-            maps = self.build_maps(scene, camera.sensor, camera.spp, seed, pass_index)
+            for layer in self._layers:
+                self.build_maps(scene, layer, camera.sensor, camera.spp, seed, pass_index)
             if pass_index == 0:
+                self._warn_if_empty()
                 self.before_estimate()
             clock = Stopwatch()
+            self._pass_seed = stream_seed(self.params.seed, seed, pass_index) & 0x7FFFFFFF
             ray, weight = camera.rays()
-            eye = eye_paths(scene, camera.sampler, ray, p.max_depth, p.rr_depth,
-                            p.direct == "nee", p.hide_emitters, True,
-                            self.backend.emission_weight)
-            eye.points.beta = eye.points.beta * dr.gather(mi.Spectrum, weight,
-                                                          eye.points.lane)
+            eye = self.eye_pass(scene, camera.sampler, ray, weight, True,
+                                self.backend.emission_weight)
             emitted += eye.emitted * weight
             valid += mi.Float(eye.valid)
-            t_eye = clock.lap(emitted, valid)
-            self._estimate_pass(maps, eye.points, state, camera.width)
-            self._add_stats(time_eye=t_eye, passes=1)
+            self._add_stats(time_eye=clock.lap(emitted, valid), passes=1)
+            self._estimate_pass(terms, eye.points, camera.width)
 
             def image(done=pass_index + 1):
                 """The image after this pass (developed into the film)."""
-                return camera.develop(emitted / done + state.radiance(), valid / done)
-            if self._after_pass(pass_index, state, start, image):
+                return camera.develop(emitted / done + _radiance(terms), valid / done)
+            if self._after_pass(pass_index, terms, start, image):
                 break
-        self.after_estimate()
-        if hasattr(state, "r2"):
-            self.stats["mean_final_radius"] = float(dr.mean(dr.sqrt(state.r2))[0])
-        done = max(state.passes, 1)
-        return emitted / done + state.radiance(), valid / done
+        self._finish(terms)
+        done = max(terms[0].state.passes, 1)
+        return emitted / done + _radiance(terms), valid / done
 
-    def _estimate_pass(self, maps, points, state, width: int):
-        """Phases 4 and 5 of one pass: estimate, sum per eye path, gather, update."""
+    def eye_pass(self, scene, sampler, ray, weight, active, emission):
+        """Phase 3: the eye paths of ``ray`` (throughput starting at ``weight``) to their
+        visible points."""
+        p = self.params
+        eye = eye_paths(scene, sampler, ray, p.max_depth, p.rr_depth, p.direct == "nee",
+                        p.hide_emitters, active, emission, p.glossy, p.glossy_samples,
+                        seed=self._pass_seed)
+        if weight is not None:
+            eye.points.beta = eye.points.beta * dr.gather(mi.Spectrum, weight,
+                                                          eye.points.lane)
+        return eye
+
+    def _warn_if_empty(self):
+        if all(layer.stored == 0 for layer in self._layers):
+            log.warning("no photon was stored: the scene has no surface with a non-delta "
+                        "BSDF lit by its emitters; only emitted light will show")
+
+    def _estimate_pass(self, terms, points, width: int):
+        """Phases 4 and 5 of one pass: every term's estimate, one gather of all of them,
+        every term's update."""
         clock = Stopwatch()
-        values, found = self.estimate_points(maps, points, state)
-        flux, count = accumulate(points, values, found, width)
-        self._add_stats(time_estimate=clock.lap(flux, count))
-        flux, count = self.backend.allreduce([flux, count], self.stats)
-        state.update(flux, count)
+        arrays = []
+        for term in terms:
+            arrays += list(term.compute(points, width))
+        self._add_stats(time_estimate=clock.lap(*arrays))
+        arrays = self.backend.allreduce(arrays, self.stats)
+        for j, term in enumerate(terms):
+            term.state.update(arrays[2 * j], arrays[2 * j + 1])
 
-    def _after_pass(self, pass_index: int, state, start: float, image) -> bool:
+    def _finish(self, terms):
+        self.after_estimate()
+        for term in terms:
+            if hasattr(term.state, "r2"):
+                key = "mean_final_radius" if term.name == "global" else \
+                    f"{term.name}_mean_final_radius"
+                self.stats[key] = float(dr.mean(dr.sqrt(term.state.r2))[0])
+
+    def _after_pass(self, pass_index: int, terms, start: float, image) -> bool:
         """Progress after a pass (``on_pass`` receives it, with ``image()`` to develop the
         image so far); True when the time limit says to stop. Time spent in ``on_pass`` is
         not counted."""
         elapsed = time.perf_counter() - start - self._paused
         done = pass_index + 1
+        state = terms[0].state
         info = {"pass": done, "passes": self.passes, "elapsed": elapsed, "image": image,
                 "photons": done * self.params.photon_count,
                 "eta": elapsed / done * (self.passes - done),
                 "mean_radius": float(dr.mean(dr.sqrt(state.r2))[0])
                 if hasattr(state, "r2") else None}
         stop = self.time_limit > 0 and elapsed >= self.time_limit and done < self.passes
+        info["last"] = stop or done == self.passes
         if self.passes > 1:
             radius = "" if info["mean_radius"] is None else \
                 f", mean radius {info['mean_radius']:.4g}"
@@ -268,20 +346,20 @@ class PhotonMapper(mi.SamplingIntegrator):
             raise ValueError(f"{type(self).__name__} with backend={self.backend.name!r} "
                              f"must be the scene's top-level integrator (its ranks gather "
                              f"whole images); use backend='local' inside moment or aov")
-        p = self.params
         width = dr.width(ray.o)
-        self._start_stats(0)
         self.radius = self.search_radius(scene)
-        eye = eye_paths(scene, sampler, ray, p.max_depth, p.rr_depth, p.direct == "nee",
-                        p.hide_emitters, active, 1.0)
-        state = self.new_state(width)
+        self._start_stats(0)
+        eye = self.eye_pass(scene, sampler, ray, None, active, 1.0)
+        self._layers = self.layers()
+        terms = self.terms(self._layers, width, scene)
         for pass_index in range(self.passes):
-            maps = self.build_maps(scene, pass_index=pass_index)
+            for layer in self._layers:
+                self.build_maps(scene, layer, pass_index=pass_index)
             if pass_index == 0:
                 self.before_estimate()
-            self._estimate_pass(maps, eye.points, state, width)
-        self.after_estimate()
-        return eye.emitted + state.radiance(), eye.valid, []
+            self._estimate_pass(terms, eye.points, width)
+        self._finish(terms)
+        return eye.emitted + _radiance(terms), eye.valid, []
 
     def aov_names(self):
         return []
@@ -290,4 +368,5 @@ class PhotonMapper(mi.SamplingIntegrator):
         """The shared props as ``key = value`` pairs for :meth:`to_string`."""
         p = self.params
         return (f"max_depth = {p.max_depth}, rr_depth = {p.rr_depth}, seed = {p.seed}, "
-                f"direct = {p.direct}, hide_emitters = {p.hide_emitters}")
+                f"direct = {p.direct}, hide_emitters = {p.hide_emitters}, kernel = "
+                f"{p.kernel}, glossy = {p.glossy}, glossy_samples = {p.glossy_samples}")

@@ -8,13 +8,30 @@ import mitsuba as mi
 
 from mi_partpm.backends import BACKENDS, make_backend
 from mi_partpm.estimate import gather_flux
-from mi_partpm.integrators.common import PhotonMapper
+from mi_partpm.gather import final_gather
+from mi_partpm.integrators.common import Layer, PhotonMapper, Term
 from mi_partpm.photonmap import fixed_radius
-from mi_partpm.progressive import SPPMState
+from mi_partpm.progressive import RadianceSum, SPPMState, accumulate, radius_schedule
+from mi_partpm.trace import stream_seed
 from mi_partpm.props import (PROGRESSIVE_RADIUS_FRACTION, RADIUS_FRACTION, read_choice,
                              read_float, read_int)
 
 log = logging.getLogger("mi_partpm")
+
+#: Keeps the caustic maps' photon streams apart from the global maps'.
+CAUSTIC_SALT = 0x5CA7_1C00
+
+
+def _read_radius_pair(props, radius_name: str, fraction_name: str):
+    """(radius, fraction) of two props that exclude each other; None where not given."""
+    has_radius = props is not None and radius_name in props
+    has_fraction = props is not None and fraction_name in props
+    if has_radius and has_fraction:
+        raise ValueError(f"give either {radius_name} or {fraction_name}, not both")
+    radius = read_float(props, radius_name, None, low=0.0) if has_radius else None
+    fraction = read_float(props, fraction_name, None, low=0.0, high=1.0) \
+        if has_fraction else None
+    return radius, fraction
 
 
 class PartPMIntegrator(PhotonMapper):
@@ -122,6 +139,17 @@ class PartPMIntegrator(PhotonMapper):
         self.passes = read_int(props, "passes", 1, low=1)
         self.alpha = read_float(props, "alpha", 0.7, low=0.0, high=1.0, high_open=True)
         self.time_limit = read_float(props, "time_limit", 0.0, low=0.0, low_open=False)
+        self.caustic_photon_count = read_int(props, "caustic_photon_count", 0, low=0)
+        self.caustic_radius, self.caustic_radius_fraction = _read_radius_pair(
+            props, "caustic_radius", "caustic_radius_fraction")
+        self.final_gather = read_int(props, "final_gather", 0, low=0)
+        if self.final_gather and self.params.direct != "nee":
+            raise ValueError(f"final_gather = {self.final_gather} needs direct = 'nee': "
+                             f"direct light at the first hit is sampled, and the global map "
+                             f"is read only where the gather rays land")
+        if self.caustic_photon_count and self.caustic_photon_count < self.map_count:
+            raise ValueError(f"caustic_photon_count must be 0 (off) or in [map_count = "
+                             f"{self.map_count}, ...), got {self.caustic_photon_count}")
         self.backend = make_backend(read_choice(props, "backend", "local", BACKENDS),
                                     self.map_count)
 
@@ -140,16 +168,67 @@ class PartPMIntegrator(PhotonMapper):
         log.info("estimate: radius %.4g, %d pass%s ...", self.radius, self.passes,
                  "" if self.passes == 1 else "es")
 
-    def new_state(self, width: int) -> SPPMState:
-        return SPPMState.start(width, self.radius, self.alpha)
+    def layers(self) -> list:
+        """The global maps, and the caustic maps when ``caustic_photon_count`` > 0. The global
+        maps then keep every other photon, so none is counted twice at a visible point; with
+        a final gather they keep all photons, since they are read only one bounce away, where
+        caustic light is light like any other (Jensen)."""
+        caustic = self.caustic_photon_count > 0
+        paths = "global" if caustic and not self.final_gather else "all"
+        layers = [Layer("global", self.params.photon_count, paths)]
+        if caustic:
+            layers.append(Layer("caustic", self.caustic_photon_count, "caustic",
+                                salt=CAUSTIC_SALT))
+        return layers
+
+    def min_bounce(self) -> int:
+        # A final gather reads the global map where its rays land: direct light there too.
+        return 1 if self.final_gather else super().min_bounce()
+
+    def terms(self, layers, width: int, scene) -> list:
+        """Per eye path: the global maps' estimate at its visible points (or, with a final
+        gather, at the gather rays' hits), and the caustic maps' with their own radius."""
+        terms = []
+        by_name = {layer.name: layer for layer in layers}
+        if self.final_gather:
+            state = RadianceSum.start(width)
+            terms.append(Term("global", state, lambda points, w: self._gather(
+                scene, by_name["global"].maps, points, w, state.passes)))
+        else:
+            terms.append(self._points_term("global", by_name["global"], width, self.radius))
+        if "caustic" in by_name:
+            r = fixed_radius(scene, self.caustic_radius, self.caustic_radius_fraction
+                             or self.radius_fraction / 4)
+            self.stats["caustic_radius"] = r
+            terms.append(self._points_term("caustic", by_name["caustic"], width, r))
+        return terms
+
+    def _points_term(self, name: str, layer, width: int, radius) -> Term:
+        state = SPPMState.start(width, radius, self.alpha)
+
+        def compute(points, w):
+            values, found = self.estimate_points(layer.maps, points, state)
+            return accumulate(points, values, found, w)
+        return Term(name, state, compute)
 
     def estimate_points(self, maps, points, state: SPPMState):
         """Each visible point's flux and photon count within its eye path's radius."""
         if not len(points):
             return dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0)
         radius = dr.gather(mi.Float, state.radius, points.lane)
-        est = gather_flux(maps, points.si, points.bsdf, radius, max_bounce=points.max_bounce)
+        est = gather_flux(maps, points.si, points.bsdf, radius, max_bounce=points.max_bounce,
+                          kernel=self.params.kernel)
         return est.flux, est.found
+
+    def _gather(self, scene, maps, points, width: int, pass_index: int):
+        """The final gather's radiance per eye path this pass (the radius follows the SPPM
+        schedule of a constant photon density: :func:`~mi_partpm.progressive.
+        radius_schedule`)."""
+        radius = radius_schedule(self.radius, self.alpha, pass_index)
+        p = self.params
+        return final_gather(scene, maps, points, width, self.final_gather, radius,
+                            seed=stream_seed(p.seed, 0, pass_index), max_depth=p.max_depth,
+                            kernel=p.kernel, caustics=self.caustic_photon_count == 0)
 
     def to_string(self):
         p = self.params
@@ -157,5 +236,6 @@ class PartPMIntegrator(PhotonMapper):
             else f"radius_fraction = {self.radius_fraction}"
         return (f"PartPMIntegrator[photon_count = {p.photon_count}, map_count = "
                 f"{self.map_count}, {radius}, passes = {self.passes}, alpha = {self.alpha}, "
-                f"time_limit = {self.time_limit}, {self.common_props_text()}, "
-                f"backend = {self.backend.name}]")
+                f"time_limit = {self.time_limit}, caustic_photon_count = "
+                f"{self.caustic_photon_count}, final_gather = {self.final_gather}, "
+                f"{self.common_props_text()}, backend = {self.backend.name}]")

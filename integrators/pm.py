@@ -7,8 +7,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_partpm.estimate import knn_flux
-from mi_partpm.integrators.common import PhotonMapper
-from mi_partpm.progressive import RadianceSum
+from mi_partpm.integrators.common import PhotonMapper, Term
+from mi_partpm.progressive import RadianceSum, accumulate
 from mi_partpm.props import read_float, read_int
 
 log = logging.getLogger("mi_partpm")
@@ -82,16 +82,19 @@ class PMIntegrator(PhotonMapper):
                  "k photons)", self.stats["mean_knn_radius"], int(acc[1]),
                  100 * self.stats["capped_share"])
 
-    def new_state(self, width: int) -> RadianceSum:
-        return RadianceSum.start(width)
+    def terms(self, layers, width: int, scene) -> list:
+        global_maps = layers[0]
+        return [Term("global", RadianceSum.start(width),
+                     lambda points, w: accumulate(points, *self.estimate_points(
+                         global_maps.maps, points), w))]
 
-    def estimate_points(self, maps, points, state):
+    def estimate_points(self, maps, points):
         """Each visible point's radiance from its k nearest photons (already normalised by
         its own kNN radius), and the photons found."""
         if not len(points):
             return dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0)
         est = knn_flux(maps, points.si, points.bsdf, self.k, self.max_radius,
-                       max_bounce=points.max_bounce)
+                       max_bounce=points.max_bounce, kernel=self.params.kernel)
         counted = dr.isfinite(est.radius2)
         dr.scatter_reduce(dr.ReduceOp.Add, self._acc, dr.sqrt(est.radius2), 0, counted)
         dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 1, counted)

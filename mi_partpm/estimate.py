@@ -31,9 +31,27 @@ from .photonmap import PhotonMaps
 __all__ = ["Flux", "gather_flux", "knn_flux", "radiance_estimate", "knn_radiance_estimate",
            "is_plain_diffuse", "KERNELS"]
 
+def _simpson(d2, r2):
+    """Silverman's biweight, Mitsuba 0.6's "Simpson" kernel: 3 (1 - d^2/r^2)^2."""
+    t = dr.maximum(1.0 - d2 / r2, 0.0)
+    return 3.0 * t * t
+
+
+def _epanechnikov(d2, r2):
+    """2 (1 - d^2/r^2)."""
+    return 2.0 * dr.maximum(1.0 - d2 / r2, 0.0)
+
+
+def _cone(d2, r2):
+    """Jensen's cone filter with k = 1: 3 (1 - d/r)."""
+    return 3.0 * dr.maximum(1.0 - dr.sqrt(d2 / r2), 0.0)
+
+
 #: Density kernels: name -> weight of a photon at squared distance d2 for radius^2 r2, or None
-#: for the box kernel of the paper's eq. (2) (weight 1 within r, nothing to multiply).
-KERNELS = {"box": None}
+#: for the box kernel of the paper's eq. (2) (weight 1 within r, nothing to multiply). Every
+#: weight integrates to pi r^2 over the disc, so 1/(pi r^2) normalises them all: a uniform
+#: photon density gives the same radiance with every kernel.
+KERNELS = {"box": None, "simpson": _simpson, "epanechnikov": _epanechnikov, "cone": _cone}
 
 
 def is_plain_diffuse(flags):

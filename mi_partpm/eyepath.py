@@ -73,6 +73,19 @@ class VisiblePoints:
     def __len__(self) -> int:
         return dr.width(self.lane)
 
+    def pieces(self) -> list:
+        """The points part by part (see ``parts``), as separate :class:`VisiblePoints`."""
+        sizes = self.parts or (len(self),)
+        if len(sizes) == 1:
+            return [self]
+        out, start = [], 0
+        for size in sizes:
+            index = dr.arange(mi.UInt32, size) + start
+            out.append(VisiblePoints(*[dr.gather(type(v), v, index) for v in (
+                self.si, self.bsdf, self.beta, self.lane, self.max_bounce)], parts=(size,)))
+            start += size
+        return out
+
 
 @dataclass
 class EyePaths:
@@ -104,8 +117,9 @@ def _concat_points(parts) -> VisiblePoints:
 
 
 def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_depth: int,
-              nee: bool, hide_emitters: bool, active=True,
-              emission: float = 1.0) -> EyePaths:
+              nee: bool, hide_emitters: bool, active=True, emission: float = 1.0,
+              glossy: str = "map", glossy_samples: int = 1, beta=None,
+              seed: int = 0, prev=None) -> EyePaths:
     """Follow the eye rays ``ray`` (one per lane) through delta bounces.
 
     Parameters
@@ -124,36 +138,65 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         with ``nee``): 1, or 0 on all ranks but one of a distributed render, so that those
         terms are counted once. They are still evaluated, so every rank draws the same random
         numbers and follows the same eye paths.
+    glossy : str
+        "map": every hit with a non-delta lobe is a visible point; "trace": at a surface
+        whose lobes are all glossy or delta the path goes on by BSDF sampling, and the
+        visible point is the next surface with a diffuse lobe.
+    glossy_samples : int
+        With "trace", the rays drawn at a path's first glossy surface (each continues alone,
+        with its own random stream from ``seed``).
+    beta : mi.Spectrum, optional
+        The paths' starting throughput (default 1).
+    prev : (mi.SurfaceInteraction3f, mi.Float), optional
+        Where the rays left a glossy surface and the BSDF's pdf of their direction, for the
+        MIS weight of the emission they find (a path continued from a glossy surface).
+
+    With "trace", a glossy surface takes direct light by emitter sampling, and the emission
+    its sampled ray finds next is weighted against it (multiple importance sampling, power
+    heuristic), as Mitsuba's ``path`` does: a point light's highlight has no other way in.
     """
     bounded = max_depth != UNLIMITED_DEPTH
     limit = segment_limit(max_depth)
     width = dr.width(ray.o)
     ray = mi.Ray3f(ray)
     L = dr.zeros(mi.Spectrum, width)
-    beta = dr.full(mi.Spectrum, 1.0, width)
+    beta = dr.full(mi.Spectrum, 1.0, width) if beta is None else mi.Spectrum(beta)
+    trace = glossy == "trace"
+    ctx_all = mi.BSDFContext()
+    splits = []
     valid = dr.zeros(mi.Bool, width)
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
     ctx_delta = mi.BSDFContext()
     ctx_delta.type_mask = mi.BSDFFlags.Delta
+    # The last glossy surface of each path and the pdf of the direction sampled there (0:
+    # the path came from the camera or a delta lobe, its emission needs no MIS weight).
+    prev_si, prev_pdf = prev if prev is not None else (dr.zeros(mi.SurfaceInteraction3f,
+                                                                width),
+                                                       dr.zeros(mi.Float, width))
     parts = []
     depth = 0
     while depth < limit:
         si = scene.ray_intersect(ray, active)
         if depth == 0:
             valid = active & si.is_valid()
-        # Emission seen by the camera, directly or through delta bounces.
+        # Emission seen by the camera, directly or through delta (or sampled glossy) bounces.
         emitter = si.emitter(scene, active)
         show = active & (emitter != None)   # noqa: E711
         if depth == 0 and hide_emitters:
             show = mi.Bool(False) & show
-        L += dr.select(show, beta * emitter.eval(si, show), 0.0) * emission
+        mis = _emission_mis(scene, prev_si, prev_pdf, si, show) if trace else 1.0
+        L += dr.select(show, beta * emitter.eval(si, show) * mis, 0.0) * emission
         active &= si.is_valid()
         bsdf = si.bsdf(ray)
         flags = bsdf.flags()
         # A visible point where the BSDF has a non-delta lobe and the path may grow by at
         # least one more segment towards the light.
+        glossy_only = mi.Bool(False)
+        if trace:
+            glossy_only = active & mi.has_flag(flags, mi.BSDFFlags.Glossy) & \
+                ~mi.has_flag(flags, mi.BSDFFlags.Diffuse)
         if depth + 1 < limit:
-            smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth)
+            smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth) & ~glossy_only
             # One kernel computes the hit and the mask before they are gathered from.
             dr.eval(si, bsdf, smooth, beta)
             index = dr.compress(smooth)
@@ -166,10 +209,34 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
                                        else 0xFFFFFFFF, dr.width(index))))
             if nee and depth + 2 <= limit:
                 L += beta * direct_light(scene, sampler, si, bsdf, smooth) * emission
-        # Follow the delta lobes (mirror, glass, plastic's coat).
-        follow = active & mi.has_flag(flags, mi.BSDFFlags.Delta) & (depth + 1 < limit)
+        # Follow the delta lobes (mirror, glass, plastic's coat); with "trace", glossy
+        # surfaces by sampling all their lobes.
+        follow = active & (mi.has_flag(flags, mi.BSDFFlags.Delta) | glossy_only) & \
+            (depth + 1 < limit)
+        if trace and depth + 2 <= limit:
+            L += beta * _glossy_direct(scene, sampler, si, bsdf, glossy_only & active) * \
+                emission
+        if trace and glossy_samples > 1:
+            split = follow & glossy_only
+            index = dr.compress(split)
+            if dr.width(index):
+                dr.eval(si, bsdf, beta)
+                splits.append((depth, dr.gather(mi.SurfaceInteraction3f, si, index),
+                               dr.gather(mi.Spectrum, beta, index), index))
+            follow &= ~glossy_only
         bs, weight = bsdf.sample(ctx_delta, si, sampler.next_1d(follow),
-                                 sampler.next_2d(follow), follow)
+                                 sampler.next_2d(follow), follow & ~glossy_only)
+        if trace:
+            bs_g, weight_g = bsdf.sample(ctx_all, si, sampler.next_1d(follow & glossy_only),
+                                         sampler.next_2d(follow & glossy_only),
+                                         follow & glossy_only)
+            bs = dr.select(glossy_only, bs_g, bs)
+            weight = dr.select(glossy_only, weight_g, weight)
+            glossy_sampled = follow & glossy_only & \
+                ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            prev_si = dr.select(glossy_sampled, si, prev_si)
+            prev_pdf = dr.select(glossy_sampled, bs.pdf, 0.0)
+            dr.eval(prev_si, prev_pdf)
         beta *= weight
         ray = si.spawn_ray(si.to_world(bs.wo))
         follow &= dr.any(beta != 0)
@@ -184,11 +251,67 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         depth += 1
         if not dr.any(active)[0]:
             break
+    for depth_at, si, beta_at, lanes in splits:
+        L = _split_paths(scene, si, beta_at, lanes, depth_at, limit, bounded, rr_depth, nee,
+                         emission, glossy_samples, seed, L, parts)
     if not parts:
         parts = [VisiblePoints(dr.zeros(mi.SurfaceInteraction3f, 0), dr.zeros(mi.BSDFPtr, 0),
                                dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0),
                                dr.zeros(mi.UInt32, 0))]
     return EyePaths(emitted=L, valid=valid, points=_concat_points(parts))
+
+
+def _power_heuristic(a, b):
+    a2, b2 = dr.square(a), dr.square(b)
+    return dr.select(a2 + b2 > 0, a2 / dr.select(a2 + b2 > 0, a2 + b2, 1.0), 0.0)
+
+
+def _glossy_direct(scene, sampler, si, bsdf, active):
+    """Direct light at glossy surfaces by one emitter sample, MIS-weighted against BSDF
+    sampling (delta lights take it all)."""
+    ctx = mi.BSDFContext()
+    ds, emitter_weight = scene.sample_emitter_direction(si, sampler.next_2d(active), True,
+                                                        active)
+    active = active & (ds.pdf != 0)
+    value, pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), active)
+    mis = dr.select(ds.delta, 1.0, _power_heuristic(ds.pdf, pdf))
+    return dr.select(active, value * emitter_weight * mis, 0.0)
+
+
+def _emission_mis(scene, prev_si, prev_pdf, si, active):
+    """The MIS weight of emission found by a ray sampled at a glossy surface (1 where the
+    ray came from the camera or a delta lobe)."""
+    sampled = active & (prev_pdf > 0)
+    ds = mi.DirectionSample3f(scene, si, prev_si)
+    em_pdf = scene.pdf_emitter_direction(prev_si, ds, sampled)
+    return dr.select(sampled, _power_heuristic(prev_pdf, em_pdf), 1.0)
+
+
+def _split_paths(scene, si, beta, lanes, depth, limit, bounded, rr_depth, nee, emission,
+                 samples, seed, L, parts):
+    """Continue paths from their first glossy surface ``samples`` times, each with weight
+    1/samples and a sampler of its own; their light is added to ``L`` and their visible
+    points to ``parts``, on the paths' own lanes."""
+    count = dr.width(lanes)
+    ctx = mi.BSDFContext()
+    bsdf = si.bsdf()
+    left = (limit - depth - 1) if bounded else UNLIMITED_DEPTH
+    for j in range(samples):
+        sampler = mi.load_dict({"type": "independent"})
+        sampler.seed((seed * 7919 + depth * 131 + j) & 0x7FFFFFFF, count)
+        bs, weight = bsdf.sample(ctx, si, sampler.next_1d(), sampler.next_2d())
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        glossy_pdf = dr.select(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta), 0.0, bs.pdf)
+        sub = eye_paths(scene, sampler, ray, left, max(1, rr_depth - depth - 1), nee, False,
+                        dr.any(weight != 0), emission, "trace", 1, beta * weight / samples,
+                        seed, prev=(si, glossy_pdf))
+        dr.scatter_add(L, sub.emitted, lanes)
+        for points in sub.points.pieces():
+            if len(points):
+                points.lane = dr.gather(mi.UInt32, lanes, points.lane)
+                dr.eval(points.lane, L)
+                parts.append(points)
+    return L
 
 
 def first_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth: int = 16,

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-__all__ = ["SPPMState", "sppm_update", "accumulate", "RadianceSum"]
+__all__ = ["SPPMState", "sppm_update", "accumulate", "RadianceSum", "radius_schedule"]
 
 
 def sppm_update(N, tau, r2, flux, found, alpha: float):
@@ -115,3 +115,15 @@ def accumulate(points, values, found, width: int):
         dr.eval(flux, count)
         start += size
     return flux, count
+
+
+def radius_schedule(radius: float, alpha: float, pass_index: int) -> float:
+    """The radius of pass ``pass_index`` (0 first) where the photon count per pass is the
+    same everywhere: the update above with a constant M, r_i^2 = r_0^2 prod_{j < i}
+    alpha (j + 1) / (alpha j + 1). It goes to zero as i^((alpha - 1) / 2) while the photons
+    found grow without bound: the radius of estimates that have no eye path of their own
+    (a final gather's hits)."""
+    r2 = float(radius) ** 2
+    for j in range(pass_index):
+        r2 *= alpha * (j + 1) / (alpha * j + 1)
+    return r2 ** 0.5

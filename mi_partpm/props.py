@@ -18,7 +18,7 @@ from typing import Optional
 __all__ = ["PhotonMapParams", "check_int", "check_float", "check_bool", "check_choice",
            "read_int", "read_float", "read_bool", "read_choice", "read_photon_map_params",
            "DIRECT_MODES", "UNLIMITED_DEPTH", "segment_limit", "RADIUS_FRACTION",
-           "PROGRESSIVE_RADIUS_FRACTION"]
+           "PROGRESSIVE_RADIUS_FRACTION", "KERNEL_NAMES", "GLOSSY_MODES"]
 
 #: ``max_depth`` of -1: no limit (Russian roulette ends the paths), as in Mitsuba.
 UNLIMITED_DEPTH = -1
@@ -32,6 +32,11 @@ PROGRESSIVE_RADIUS_FRACTION = 0.025
 
 #: How direct illumination is computed: from the photon maps, or by emitter sampling.
 DIRECT_MODES = ("photons", "nee")
+#: Density kernels (:data:`mi_partpm.estimate.KERNELS`).
+KERNEL_NAMES = ("box", "simpson", "epanechnikov", "cone")
+#: What eye paths do at surfaces whose lobes are all glossy or delta: estimate from the map
+#: there, or trace on by BSDF sampling to the next surface with a diffuse lobe.
+GLOSSY_MODES = ("map", "trace")
 
 
 def segment_limit(max_depth: int) -> int:
@@ -127,6 +132,9 @@ class PhotonMapParams:
     hide_emitters: bool = False
     radius: Optional[float] = None
     radius_fraction: Optional[float] = None    # None: RADIUS_FRACTION (or PROGRESSIVE_...)
+    kernel: str = "box"
+    glossy: str = "map"
+    glossy_samples: int = 1
 
 
 def read_photon_map_params(props, fixed_radius: bool = True) -> PhotonMapParams:
@@ -146,6 +154,12 @@ def read_photon_map_params(props, fixed_radius: bool = True) -> PhotonMapParams:
     p.seed = read_int(props, "seed", p.seed, low=0, high=2**63 - 1)
     p.direct = read_choice(props, "direct", p.direct, DIRECT_MODES)
     p.hide_emitters = read_bool(props, "hide_emitters", p.hide_emitters)
+    p.kernel = read_choice(props, "kernel", p.kernel, KERNEL_NAMES)
+    p.glossy = read_choice(props, "glossy", p.glossy, GLOSSY_MODES)
+    p.glossy_samples = read_int(props, "glossy_samples", p.glossy_samples, low=1)
+    if p.glossy_samples > 1 and p.glossy != "trace":
+        raise ValueError(f"glossy_samples = {p.glossy_samples} needs glossy = 'trace' (the "
+                         f"samples are the rays traced from a glossy surface)")
     if not fixed_radius:
         return p
     has_radius = props is not None and "radius" in props

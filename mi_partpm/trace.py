@@ -26,7 +26,10 @@ from .props import segment_limit
 from .scenes import check_scene
 
 __all__ = ["map_sizes", "map_seeds", "stream_seed", "trace_photons", "check_emitters", "emit",
-           "Photons"]
+           "Photons", "PATHS"]
+
+#: Which photons a tracing run stores: all of them, only caustic ones (L S+ D), or the rest.
+PATHS = ("all", "caustic", "global")
 
 
 def map_sizes(photon_count: int, map_count: int) -> np.ndarray:
@@ -128,7 +131,7 @@ def check_emitters(scene: mi.Scene, samples: int = 1024):
 
 def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: int = 0,
                   max_depth: int = -1, rr_depth: int = 5, maps: Optional[Sequence[int]] = None,
-                  min_bounce: int = 1,
+                  min_bounce: int = 1, paths: str = "all",
                   progress: Optional[Callable[[str], None]] = None,
                   batch_size: int = TRACE_BATCH,
                   memory_check: Optional[Callable[[float, int], None]] = None) -> Photons:
@@ -153,6 +156,11 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         Trace only these maps (a rank of a distributed job); default all.
     min_bounce : int
         Store photons from this many segments on (2 leaves out direct illumination).
+    paths : str
+        Which photons to store (:data:`PATHS`): "all"; "caustic", only the photons that
+        reached their first non-delta surface through one or more delta bounces (L S+ D;
+        the path ends there); "global", all the others, so that a global and a caustic map
+        together hold every photon once.
     progress : callable(str), optional
         Receives a line per batch.
     batch_size : int
@@ -167,6 +175,8 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         Stored photons on the device, ``emitted == photon_count`` whichever maps were traced.
     """
     check_emitters(scene)
+    if paths not in PATHS:
+        raise ValueError(f"paths must be one of {', '.join(PATHS)}, got {paths!r}")
     sizes = map_sizes(photon_count, map_count)
     maps = np.arange(map_count) if maps is None else np.asarray(list(maps), dtype=np.int64)
     max_depth = segment_limit(max_depth)
@@ -174,7 +184,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     if n_lanes == 0 or max_depth < 1:
         return empty_photons(photon_count, map_count)
     run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
-               min_bounce)
+               min_bounce, PATHS.index(paths))
     # Lane l of the traced maps -> (map, index within the map).
     ends = np.cumsum(sizes[maps])
     batches, segments, done = [], 0, 0
@@ -204,10 +214,11 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
 class _Run:
     """What every batch of one tracing run shares."""
 
-    def __init__(self, scene, photon_count, seeds, max_depth, rr_depth, min_bounce):
+    def __init__(self, scene, photon_count, seeds, max_depth, rr_depth, min_bounce, paths):
         self.scene, self.photon_count = scene, photon_count
         self.seeds = mi.UInt64(seeds)
         self.max_depth, self.rr_depth, self.min_bounce = max_depth, rr_depth, min_bounce
+        self.paths = paths
         self.table = _emitter_table(scene)
 
     def batch(self, lane_map: np.ndarray, lane_index: np.ndarray, per_lane: float):
@@ -240,17 +251,27 @@ class _Run:
                dr.zeros(mi.UInt32, capacity), dr.zeros(mi.UInt32, capacity))
         counter = dr.zeros(mi.UInt32, 1)
         segments = _trace_paths(self.scene, rng, ray, power, map_id, out, counter, capacity,
-                                self.max_depth, self.rr_depth, self.min_bounce)
+                                self.max_depth, self.rr_depth, self.min_bounce, self.paths)
         total = dr.sum(segments)
         dr.eval(out, counter, total)
         return out, counter, total
 
 
+def shading_correction(si, wi):
+    """The adjoint BSDF's correction for shading normals at a stored photon (Veach 1997,
+    as Mitsuba 0.6 applies it at the last bounce): |wi . n_s| / |wi . n_g|. Exactly 1 where
+    the shading normal is the geometric one; 1 where the photon grazes the geometry
+    (|wi . n_g| < 1e-3), which the correction would blow up."""
+    cos_g = dr.abs(dr.dot(wi, si.n))
+    cos_s = dr.abs(dr.dot(wi, si.sh_frame.n))
+    return dr.select(cos_g > 1e-3, cos_s / dr.select(cos_g > 1e-3, cos_g, 1.0), 1.0)
+
+
 @dr.syntax
 def _trace_paths(scene, rng, ray, power, map_id, out, counter, capacity, max_depth, rr_depth,
-                 min_bounce):
+                 min_bounce, paths):
     """The bounce loop of one batch (one kernel): store, scatter, roulette. Returns the
-    segments each lane traced."""
+    segments each lane traced. ``paths`` is the index in :data:`PATHS`."""
     positions, codes, fluxes, maps, bounces, lanes = out
     lane = dr.arange(mi.UInt32, dr.width(map_id))
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
@@ -261,17 +282,25 @@ def _trace_paths(scene, rng, ray, power, map_id, out, counter, capacity, max_dep
     rr_from = dr.opaque(mi.UInt32, rr_depth)
     store_from = dr.opaque(mi.UInt32, min_bounce)
     room = dr.opaque(mi.UInt32, capacity)
+    delta_only = dr.full(mi.Bool, True, dr.width(map_id))   # every bounce so far was delta
     while dr.hint(active, label="partpm_trace"):
         si = scene.ray_intersect(ray, active)
         segments += 1
         active &= si.is_valid()
         bsdf = si.bsdf()
-        store = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (bounce >= store_from)
+        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        caustic = delta_only & (bounce >= 2)            # L S+ D: its first non-delta surface
+        store = smooth & (bounce >= store_from)
+        if dr.hint(paths == 1, mode="scalar"):
+            store &= caustic
+            active &= ~smooth                           # no caustic photon after this one
+        elif dr.hint(paths == 2, mode="scalar"):
+            store &= ~caustic
         slot = dr.scatter_inc(counter, mi.UInt32(0), store)
         write = store & (slot < room)
         dr.scatter(positions, si.p, slot, write)
         dr.scatter(codes, encode_direction(-ray.d), slot, write)
-        dr.scatter(fluxes, power, slot, write)
+        dr.scatter(fluxes, power * shading_correction(si, -ray.d), slot, write)
         dr.scatter(maps, map_id, slot, write)
         dr.scatter(bounces, bounce, slot, write)
         dr.scatter(lanes, lane, slot, write)
@@ -283,6 +312,7 @@ def _trace_paths(scene, rng, ray, power, map_id, out, counter, capacity, max_dep
                                                  rng.next_float32(active)), active)
         ray = si.spawn_ray(si.to_world(bs.wo))
         power *= bsdf_weight
+        delta_only &= mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         active &= dr.any(power != 0) & dr.all(dr.isfinite(power))
         if bounce >= rr_from:
             q = dr.minimum(dr.max(bsdf_weight), 0.95)

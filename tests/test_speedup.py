@@ -2,6 +2,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from hwsim.workload import load_workloads
 from mi_partpm.cli import main
@@ -45,12 +46,29 @@ def test_speedup_cli_and_errors(tmp_path, capsys):
 
 
 def test_bench_smoke(tmp_path, capsys):
-    """Every benchmark runs and reports a ratio (tiny sizes: the figures mean nothing)."""
+    """Every benchmark runs at a tiny size and reports a consistent row (the figures mean
+    nothing at this size; the full run is `partpm bench`): the ratio is the baseline over ours
+    (or ours over the baseline where lower is better), "met" is the ratio against the target,
+    and the memory rows come from a real measurement in another process."""
     out = tmp_path / "bench.json"
     assert main(["bench", "--smoke", "--out", str(out), "-q"]) == 0
-    rows = json.loads(out.read_text())["rows"]
-    names = [r["benchmark"] for r in rows]
-    assert names[0] == "radius sums, n=1" and "32 maps in turn / 1 map" in names
-    assert any(n.startswith("tracing") for n in names)
-    assert all(r["ratio"] > 0 and r["ours"] > 0 for r in rows)
+    result = json.loads(out.read_text())
+    rows = {r["benchmark"]: r for r in result["rows"]}
+    groups = ["radius sums, cornell_box, unsorted", "radius sums, cornell_box, sorted",
+              "radius sums, room, unsorted", "kNN k=50, room, sorted",
+              "integrator estimate, 32 maps in turn / 1 map", "build, 5,000 photons",
+              "build, 20,000 photons", "tracing, 20,000 photons", "emitting, sunsky",
+              "memory, 20,000 photons emitted"]
+    for name in groups:
+        assert name in rows, name
+    for r in rows.values():
+        assert np.isfinite([r["ours"], r["baseline"], r["ratio"]]).all() and r["ours"] > 0
+        if r["ratio_meaning"] == "baseline time / ours":
+            assert r["ratio"] == pytest.approx(r["baseline"] / r["ours"])
+        assert r["met"] == (r["ratio"] >= r["target"] if r["target_is"] == "at least"
+                            else r["ratio"] <= r["target"])
+    memory = rows["memory, 20,000 photons emitted"]
+    assert memory["stored"] > 20_000 and memory["peak_rss_bytes"] >= memory["baseline_rss_bytes"]
+    assert memory["ratio"] == pytest.approx(memory["peak_rss_bytes"] / memory["stored"])
+    assert result["code"] and result["machine"]["cores"] >= 1
     assert "baseline time / ours" in capsys.readouterr().out

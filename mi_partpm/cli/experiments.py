@@ -38,12 +38,9 @@ def run_compare(args) -> int:
 
 def run_bench(args) -> int:
     setup(args)
-    from ..experiments.bench import format_bench, run_bench
-    sizes = dict(photons=args.photons, resolution=args.resolution, repeats=args.repeats)
-    if args.smoke:
-        sizes = dict(photons=5000, resolution=(32, 32), repeats=1, big=20_000, huge=100_000,
-                     trace_photons_count=20_000, path_spp=2)
-    result = run_bench(args.out, args.scene, progress=progress(args), **sizes)
+    from ..experiments.bench import format_bench, run_bench as run
+    result = run(args.out, args.scene, size="smoke" if args.smoke else "full",
+                 repeats=None if args.smoke else args.repeats, progress=progress(args))
     print(format_bench(result))
     if args.out:
         print(f"wrote    {args.out}")

@@ -137,10 +137,11 @@ def _experiment_options(sub):
     e.add_argument("--out", required=True, help="output directory (CSV, JSON, plot, workloads)")
     e.add_argument("-q", "--quiet", action="store_true", help="print only errors")
 
-    b = sub.add_parser("bench", help="kd-tree and tracer benchmarks against scipy, pykdtree "
-                                     "and Mitsuba's path tracer")
+    b = sub.add_parser("bench", help="kd-tree, estimate, build, tracer and memory benchmarks "
+                                     "against scipy, pykdtree and Mitsuba's path tracer")
     b.add_argument("--scene", default="cornell_box", help="scene (default cornell_box)")
-    _size_options(b, spp=None, repeats=5, repeats_help="timed runs of every benchmark")
+    b.add_argument("--repeats", type=positive_int("--repeats"), default=5,
+                   help="timed runs of every benchmark; medians are reported (default 5)")
     b.add_argument("--smoke", action="store_true",
                    help="tiny sizes: checks that every benchmark runs, measures nothing")
     b.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")

@@ -1,20 +1,26 @@
-"""``partpm bench``: our kd-tree and photon tracer against the baselines a user could pick.
+"""``partpm bench``: what users run, against the baselines they could pick, in one run.
 
-Every comparison is timed in one run, on the same data, as medians over ``repeats``; each
-prints a ratio against its named baseline and its target:
+Every comparison is timed in one run, on the same data, as medians over ``repeats``; each row
+prints a ratio against its named baseline and the target it is held to:
 
-- fixed-radius power sums at every hit point, one map, vs ``scipy.spatial.cKDTree.
-  query_ball_point(return_length=True, workers=-1)``, which only COUNTS (target: 3x faster);
-- the kNN estimate's query (k = 50, power sums) vs ``pykdtree`` ``query(k=50)`` on all cores
-  (target: no slower);
-- the kd-tree build of the stored photons and of 10^6 photons vs ``cKDTree(balanced_tree=
-  True)`` (target: no slower);
-- all 32 maps answered one after another vs one map with all photons (target: at most 2x,
-  i.e. per-map speedup >= 16), and the same ratio for one cKDTree per map (count only);
-- photon tracing, ray segments per second, vs Mitsuba's ``path`` (target: >= 0.8x);
-- bytes per stored photon including its tree, for 10^6 and 10^7 photons (target: <= 32);
-- photons traced per second for every kind of emitter Mitsuba ships, against an area light
-  (target: none more than 5x slower).
+- fixed-radius power sums (the bare :func:`~mi_partpm.kdtree.radius_query`) vs
+  ``scipy.spatial.cKDTree.query_ball_point(return_length=True, workers=-1)``, which only
+  COUNTS (target 3x faster), on queries in random order and in Morton order, on two
+  workloads: the Cornell box's photons and eye-ray hits, and a room nobody tuned on
+  (:func:`room_workload`: photons on the walls, a sphere and a slab, falling off from the
+  ceiling; queries in random order on the same surfaces);
+- the kNN query, k = 50, power sums vs ``pykdtree`` ``query(k=50)`` (target: no slower), on
+  the same four inputs;
+- the integrator's own estimate (BSDF, side test, photon count) at one pass's visible points,
+  with the photons in 1 map and in 32 maps walked in turn (target: 32 maps at most 2x);
+- the kd-tree build vs ``cKDTree(balanced_tree=True)`` at 3 x 10^5, 10^6 and 3 x 10^7
+  photons (targets 1x, 1x, 1.5x);
+- photon tracing vs Mitsuba's ``path`` (max_depth 2), ray segments per second, both counted:
+  ours by the tracer, path's by replaying its decisions (:func:`path_segments`) (target 0.8x);
+- photons traced per second for every kind of emitter, against an area light (none more than
+  5x slower);
+- memory per stored photon, MEASURED in a fresh process rendering 10^6 and 10^7 photons: the
+  process's peak resident memory and Dr.Jit's own peak (:mod:`.memprobe`) (target 80 bytes).
 """
 from __future__ import annotations
 
@@ -27,171 +33,227 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..eyepath import first_hits
-from ..kdtree import build_forest, knn_query, radius_query
-from ..photonmap import build_photon_maps, fixed_radius, map_bytes
+from .provenance import code_version, git_commit, machine
+from ..estimate import gather_flux
+from ..eyepath import eye_paths, first_hits
+from ..kdtree import build_forest, knn_query, morton_order, radius_query
+from ..photonmap import build_photon_maps, fixed_radius
 from ..scenes import load_scene
 from ..timing import median_time, sync
 from ..trace import trace_photons
 
-__all__ = ["run_bench", "format_bench"]
+__all__ = ["run_bench", "format_bench", "room_workload", "path_segments", "SIZES"]
+
+#: Sizes of a full run and of ``--smoke`` (tiny: checks that everything runs).
+SIZES = {
+    "full": dict(photons=100_000, resolution=(480, 480), repeats=5, room=200_000,
+                 builds=(300_000, 1_000_000, 30_000_000), trace=1_000_000, path_spp=16,
+                 emitter_photons=1_000_000, memory=(1_000_000, 10_000_000)),
+    "smoke": dict(photons=5_000, resolution=(32, 32), repeats=1, room=5_000,
+                  builds=(5_000, 20_000), trace=20_000, path_spp=2, emitter_photons=20_000,
+                  memory=(20_000,)),
+}
+
+
+def room_workload(points: int, queries: int, seed: int = 0):
+    """A workload nobody tuned on: photon-like points on the surfaces of a room 0.6 wide with
+    a sphere and a slab, their density falling off from the ceiling, and query points on the
+    same surfaces in random order. With 2 x 10^5 of each, r = 0.05 finds about 580-900
+    photons per query. Returns (points (N, 3), queries (Q, 3)) float32."""
+    rng = np.random.default_rng(seed)
+
+    def surface(m):
+        kind = rng.integers(0, 8, m)
+        u, v = rng.random(m) * 2 - 1, rng.random(m) * 2 - 1
+        p = np.zeros((m, 3))
+        for axis in range(3):
+            for side, k in ((-1, 2 * axis), (1, 2 * axis + 1)):
+                sel = kind == k
+                p[sel, axis] = side
+                p[sel, (axis + 1) % 3], p[sel, (axis + 2) % 3] = u[sel], v[sel]
+        sel = kind == 6
+        d = rng.normal(size=(sel.sum(), 3))
+        p[sel] = np.array([0.3, -0.6, 0.0]) + 0.4 * d / np.linalg.norm(d, axis=1)[:, None]
+        sel = kind == 7
+        p[sel] = np.c_[rng.random(sel.sum()) * 0.8 - 0.8, np.full(sel.sum(), -0.5),
+                       rng.random(sel.sum()) * 0.8 - 0.4]
+        return (0.3 * p).astype(np.float32)
+    pts = surface(points * 3)
+    pts = pts[rng.random(len(pts)) < np.exp(-(0.3 - pts[:, 1]) / 0.3)][:points]
+    qs = surface(queries)
+    rng.shuffle(qs)
+    return np.ascontiguousarray(pts), np.ascontiguousarray(qs)
+
+
+@dataclass
+class _Workload:
+    """Photons and queries for the bare-API rows."""
+
+    name: str
+    points: np.ndarray
+    queries: np.ndarray        # random order
+    radius: float
 
 
 @dataclass
 class _Bench:
-    """The shared workload of one run, and the rows measured on it."""
-
-    scene: object
-    radius: float
-    traced: object
-    points: np.ndarray       # stored photon positions (N, 3)
-    maps: object             # one map of all stored photons
-    p: object                # hit points (Dr.Jit)
-    queries: np.ndarray      # hit points (Q, 3)
     repeats: int
     say: object
     rows: list = field(default_factory=list)
 
-    def power_sums(self, maps, map_range=None):
-        return radius_query(maps.forest, self.p, self.radius,
-                            lambda i, d2, a, s: maps.photon_power(i, a), mi.Spectrum,
-                            maps=map_range)
-
     def row(self, name, ours, base, base_name, target, ratio, meaning, at_least=True,
-            unit="s"):
+            unit="s", **extra):
         ok = ratio >= target if at_least else ratio <= target
         self.rows.append({"benchmark": name, "ours": ours, "baseline": base,
                           "baseline_name": base_name, "ratio": ratio, "target": target,
                           "target_is": "at least" if at_least else "at most",
-                          "ratio_meaning": meaning, "met": bool(ok), "unit": unit})
+                          "ratio_meaning": meaning, "met": bool(ok), "unit": unit, **extra})
         self.say(f"  {name}: ours {ours:.4g} {unit}, {base_name} {base:.4g} {unit}, {meaning} "
                  f"{ratio:.2f} (target {'>=' if at_least else '<='} {target}) "
                  f"{'met' if ok else 'NOT met'}")
 
-    def faster(self, name, ours, base, base_name, target):
-        self.row(name, ours, base, base_name, target, base / ours, "baseline time / ours")
+    def faster(self, name, ours, base, base_name, target, **extra):
+        self.row(name, ours, base, base_name, target, base / ours, "baseline time / ours",
+                 **extra)
 
 
-def _setup(scene_name, photons, resolution, repeats, say) -> _Bench:
-    scene = load_scene(scene_name, resolution=resolution, spp=1)
-    traced = trace_photons(scene, photons, 1, 0)
-    si = first_hits(scene, 1, 0)[0]
-    b = _Bench(scene=scene, radius=fixed_radius(scene, None, 0.05), traced=traced,
-               points=np.ascontiguousarray(traced.position, dtype=np.float32),
-               maps=build_photon_maps(traced), p=si.p,
-               queries=np.ascontiguousarray(np.array(si.p, dtype=np.float32).T),
-               repeats=repeats, say=say)
-    say(f"{scene_name}: {photons} photons emitted, {len(b.points)} stored, "
-        f"{b.queries.shape[0]} hit points, r = {b.radius:.4g}")
-    return b
+def _points(a: np.ndarray) -> mi.Point3f:
+    return mi.Point3f(*[np.ascontiguousarray(a[:, k]) for k in range(3)])
 
 
-def _bench_queries(b: _Bench):
-    """1. Fixed-radius power sums, one map; 2. kNN, k = 50."""
+def _bench_queries(b: _Bench, w: _Workload):
+    """Rows 1-2: radius power sums and kNN, unsorted and Morton-sorted queries."""
     from scipy.spatial import cKDTree
-    ours = median_time(lambda: b.power_sums(b.maps), b.repeats)
-    ck = cKDTree(b.points, balanced_tree=True)
-    base = median_time(lambda: ck.query_ball_point(b.queries, b.radius, return_length=True,
-                                                   workers=-1), b.repeats, jit=False)
-    b.faster("radius sums, n=1", ours, base, "cKDTree count only", 3.0)
-    ours = median_time(lambda: knn_query(b.maps.forest, b.p, 50,
-                                         lambda i, d2, a, s: b.maps.photon_power(i, a),
-                                         mi.Spectrum).total, b.repeats)
+    forest = build_forest(w.points)
+    power = mi.Float(np.ones(len(w.points), np.float32))
+    ck = cKDTree(w.points, balanced_tree=True)
     try:
         from pykdtree.kdtree import KDTree
-        kd = KDTree(b.points)
-        base = median_time(lambda: kd.query(b.queries, k=50), b.repeats, jit=False)
-        b.faster("kNN k=50, n=1", ours, base, "pykdtree query(k=50)", 1.0)
+        knn_base, knn_name = KDTree(w.points), "pykdtree query(k=50)"
     except ImportError:
-        base = median_time(lambda: ck.query(b.queries, k=50, workers=-1), b.repeats, jit=False)
-        b.faster("kNN k=50, n=1", ours, base, "cKDTree query(k=50) (pykdtree not installed)",
-                 1.0)
+        knn_base, knn_name = None, "cKDTree query(k=50) (pykdtree not installed)"
+    found = float(np.mean(ck.query_ball_point(w.queries[:2000], w.radius, return_length=True)))
+    for order in ("unsorted", "sorted"):
+        q = w.queries if order == "unsorted" else w.queries[morton_order(w.queries)]
+        p = _points(q)
+        ours = median_time(lambda: radius_query(forest, p, w.radius, lambda i, d2, a, s: dr.gather(
+            mi.Float, power, i, a)), b.repeats)
+        base = median_time(lambda: ck.query_ball_point(q, w.radius, return_length=True,
+                                                       workers=-1), b.repeats, jit=False)
+        b.faster(f"radius sums, {w.name}, {order}", ours, base, "cKDTree count only", 3.0,
+                 photons_per_query=found)
+        ours = median_time(lambda: knn_query(forest, p, 50, lambda i, d2, a, s: dr.gather(
+            mi.Float, power, i, a)).total, b.repeats)
+        if knn_base is not None:
+            base = median_time(lambda: knn_base.query(q, k=50), b.repeats, jit=False)
+        else:
+            base = median_time(lambda: ck.query(q, k=50, workers=-1), b.repeats, jit=False)
+        b.faster(f"kNN k=50, {w.name}, {order}", ours, base, knn_name, 1.0)
 
 
-def _bench_builds(b: _Bench, big: int):
-    """3. Builds of the stored photons and of ``big`` photons."""
+def _bench_estimate(b: _Bench, scene, photons: int, n: int = 32):
+    """Row 3: the integrator's estimate at one pass's visible points, 1 map vs n in turn."""
+    traced = trace_photons(scene, photons, n, 1)
+    one = build_photon_maps(traced.with_maps(dr.zeros(mi.UInt32, len(traced)), 1))
+    split = build_photon_maps(traced)
+    sensor = scene.sensors()[0]
+    sampler = sensor.sampler()
+    size = sensor.film().crop_size()
+    sampler.seed(0, int(size[0] * size[1]))
+    idx = dr.arange(mi.UInt32, int(size[0] * size[1]))
+    uv = (mi.Vector2f(mi.Float(idx % int(size[0])), mi.Float(idx // int(size[0])))
+          + sampler.next_2d()) / mi.ScalarVector2f(size)
+    ray, _ = sensor.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5))
+    points = eye_paths(scene, sampler, ray, -1, 5, False, False).points
+    radius = fixed_radius(scene, None, 0.05)
+
+    def estimate(maps):
+        est = gather_flux(maps, points.si, points.bsdf, radius)
+        return est.flux, est.found
+    t1 = median_time(lambda: estimate(one), b.repeats)
+    tn = median_time(lambda: estimate(split), b.repeats)
+    b.row(f"integrator estimate, {n} maps in turn / 1 map", tn, t1, "one map, all photons",
+          2.0, tn / t1, f"time of {n} maps / 1 map", at_least=False,
+          visible_points=len(points))
+
+
+def _bench_builds(b: _Bench, scene, sizes):
+    """Row 4: builds at the given photon counts (photons traced in ``scene``)."""
     from scipy.spatial import cKDTree
-    ours = median_time(lambda: build_forest(b.points), b.repeats, jit=False)
-    base = median_time(lambda: cKDTree(b.points, balanced_tree=True), b.repeats, jit=False)
-    b.faster(f"build, {len(b.points)} photons", ours, base, "cKDTree(balanced_tree=True)", 1.0)
-    more = trace_photons(b.scene, max(1, big // 2), 1, 1)
-    points = np.ascontiguousarray(np.concatenate([more.position, b.points])[:big],
-                                  dtype=np.float32)
-    few = max(1, b.repeats // 2)
-    ours = median_time(lambda: build_forest(points), few, jit=False)
-    base = median_time(lambda: cKDTree(points, balanced_tree=True), few, jit=False)
-    b.faster(f"build, {len(points)} photons", ours, base, "cKDTree(balanced_tree=True)", 1.0)
+    targets = {0: 1.0, 1: 1.0}
+    emitted = max(1, max(sizes) // 3 + 1)
+    positions = trace_photons(scene, emitted, 1, 2).position
+    while len(positions) < max(sizes):
+        positions = np.concatenate([positions, positions + 1e-4])
+    for j, size in enumerate(sizes):
+        pts = np.ascontiguousarray(positions[:size])
+        device = _points(pts)
+        sync(device)
+        reps = b.repeats if size <= 1_000_000 else 1
+        ours = median_time(lambda: build_forest(device).records, reps)
+        base = median_time(lambda: cKDTree(pts, balanced_tree=True), reps, jit=False)
+        b.faster(f"build, {size:,} photons", ours, base, "cKDTree(balanced_tree=True)",
+                 targets.get(j, 1.5))
+        del device
 
 
-def _bench_maps_in_turn(b: _Bench, n: int = 32):
-    """4. All n maps one after another vs one map with all photons (and the same for one
-    cKDTree per map, count only)."""
-    from scipy.spatial import cKDTree
-    index = np.arange(len(b.points))
-    split = build_photon_maps(b.traced.with_maps(index % n, n))
-    one = median_time(lambda: b.power_sums(b.maps), b.repeats)
-
-    def all_maps():
-        total = 0.0
-        for m in range(n):
-            t0 = time.perf_counter()
-            sync(b.power_sums(split, (m, m + 1)))
-            total += time.perf_counter() - t0
-        return total
-    all_maps()
-    few = max(1, b.repeats // 2)
-    ours = float(np.median([all_maps() for _ in range(few)]))
-    b.row(f"{n} maps in turn / 1 map", ours, one, "one map, all photons", 2.0, ours / one,
-          f"time of {n} maps / 1 map", at_least=False)
-    trees = [cKDTree(b.points[index % n == m], balanced_tree=True) for m in range(n)]
-    ck_n = median_time(lambda: [t.query_ball_point(b.queries, b.radius, return_length=True,
-                                                   workers=-1) for t in trees], few, jit=False)
-    whole = cKDTree(b.points, balanced_tree=True)
-    ck_1 = median_time(lambda: whole.query_ball_point(b.queries, b.radius, return_length=True,
-                                                      workers=-1), b.repeats, jit=False)
-    b.rows[-1]["ckdtree_ratio"] = ck_n / ck_1
-    b.say(f"    (one cKDTree per map, count only: {n} maps / 1 map = {ck_n / ck_1:.2f})")
-
-
-def _path_segments_per_sample(scene, spp, seed=0):
-    """Ray segments Mitsuba's ``path`` traces per sample at max_depth = 2: the camera ray,
-    then, where it hits, the bounce ray and (on surfaces with a smooth lobe) a shadow ray."""
-    si, _, _ = first_hits(scene, spp, seed, max_depth=1)
-    cam = scene.sensors()[0]
-    size = cam.film().crop_size()
-    samples = int(size[0]) * int(size[1]) * spp
-    # Camera rays that hit anything at all (smooth or delta): count them separately.
-    sampler = cam.sampler().clone()
-    sampler.seed(seed, samples)
-    uv = mi.Point2f(sampler.next_1d(), sampler.next_1d())
-    ray, _ = cam.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
-    valid = np.count_nonzero(scene.ray_intersect(ray).is_valid().numpy()) / samples
-    smooth = dr.width(si.p) / samples
-    return 1.0 + valid + smooth
+def path_segments(scene, spp: int, max_depth: int = 2, seed: int = 0) -> int:
+    """Ray segments Mitsuba's ``path`` traces at ``max_depth`` (2 or 3), counted by replaying
+    its decisions: every camera ray; a shadow ray where emitter sampling finds a direction
+    (a surface with a smooth lobe, depth + 1 < max_depth); a continuation ray where BSDF
+    sampling gives a nonzero weight and depth + 1 < max_depth."""
+    sensor = scene.sensors()[0]
+    size = sensor.film().crop_size()
+    width = int(size[0] * size[1] * spp)
+    sampler = sensor.sampler().clone()
+    sampler.seed(seed, width)
+    idx = dr.arange(mi.UInt32, width) // spp
+    uv = (mi.Vector2f(mi.Float(idx % int(size[0])), mi.Float(idx // int(size[0])))
+          + sampler.next_2d()) / mi.ScalarVector2f(size)
+    ray, _ = sensor.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5))
+    active = dr.full(mi.Bool, True, width)
+    segments = 0
+    ctx = mi.BSDFContext()
+    for depth in range(max_depth):
+        segments += int(dr.count(active)[0])
+        si = scene.ray_intersect(ray, active)
+        active &= si.is_valid()
+        if depth + 1 >= max_depth:
+            break
+        bsdf = si.bsdf(ray)
+        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        ds, _ = scene.sample_emitter_direction(si, sampler.next_2d(smooth), False, smooth)
+        segments += int(dr.count(smooth & (ds.pdf != 0))[0])
+        bs, weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active),
+                                 active)
+        active &= dr.any(weight != 0)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+    return segments
 
 
 def _bench_tracing(b: _Bench, scene_name, resolution, count, path_spp):
-    """5. Photon tracing vs Mitsuba's path tracer, ray segments per second."""
-    t_trace = float("inf")
+    """Row 5: photon tracing vs Mitsuba's path tracer, segments per second, both counted."""
+    scene = load_scene(scene_name, resolution=resolution, spp=1)
+    trace_photons(scene, count // 10, 1, 1)                      # warm-up
+    t_trace, traced = float("inf"), None
     for seed in (2, 3):
         t0 = time.perf_counter()
-        traced = trace_photons(b.scene, count, 1, seed)
+        traced = trace_photons(scene, count, 1, seed)
         t_trace = min(t_trace, time.perf_counter() - t0)
     ours_rate = traced.segments / t_trace
     path = mi.load_dict({"type": "path", "max_depth": 2})
     path_scene = load_scene(scene_name, resolution=resolution, spp=path_spp)
     t_path = median_time(lambda: mi.render(path_scene, integrator=path, spp=path_spp),
                          max(1, b.repeats // 2))
-    samples = resolution[0] * resolution[1] * path_spp
-    path_rate = samples * _path_segments_per_sample(path_scene, path_spp) / t_path
-    b.row(f"tracing, {count} photons", ours_rate / 1e6, path_rate / 1e6,
+    path_rate = path_segments(path_scene, path_spp) / t_path
+    b.row(f"tracing, {count:,} photons", ours_rate / 1e6, path_rate / 1e6,
           "Mitsuba path (max_depth 2)", 0.8, ours_rate / path_rate, "our rate / baseline rate",
           unit="M segments/s")
 
 
 def _bench_emitters(b: _Bench, count: int):
-    """7. Photons emitted and traced per second, per kind of emitter (the floor of
-    :mod:`mi_partpm.scenes.emitters`), against the rectangular area light."""
+    """Row 6: photons emitted and traced per second, per kind of emitter, against the area
+    light (the floor of :mod:`mi_partpm.scenes.emitters`)."""
     import tempfile
     from ..scenes.emitters import EMITTER_KINDS, emitter_scene, write_textures
     rates = {}
@@ -199,8 +261,7 @@ def _bench_emitters(b: _Bench, count: int):
         textures = write_textures(folder)
         for kind in EMITTER_KINDS:
             scene = emitter_scene(kind, textures)
-            seconds = median_time(lambda: trace_photons(scene, count, 1, 0), b.repeats,
-                                  jit=False)
+            seconds = median_time(lambda: trace_photons(scene, count, 1, 0).points, b.repeats)
             rates[kind] = count / seconds
     area = rates["area_rectangle"]
     for kind, rate in rates.items():
@@ -209,25 +270,47 @@ def _bench_emitters(b: _Bench, count: int):
                   rate / area, "photons/s over the area light's", unit="M photons/s")
 
 
-def run_bench(out_json=None, scene_name: str = "cornell_box", photons: int = 100_000,
-              resolution=(480, 480), repeats: int = 5, big: int = 1_000_000,
-              huge: int = 10_000_000, trace_photons_count: int = 1_000_000,
-              path_spp: int = 16, progress=print) -> dict:
-    """Run every benchmark; return (and with ``out_json`` write) the table."""
-    b = _setup(scene_name, photons, resolution, repeats, progress or (lambda *a: None))
-    _bench_queries(b)
-    _bench_builds(b, big)
-    _bench_maps_in_turn(b)
-    _bench_tracing(b, scene_name, resolution, trace_photons_count, path_spp)
-    _bench_emitters(b, trace_photons_count)
-    # 6. Memory per stored photon, record and tree.
-    for count in (big, huge):
-        per_photon = float(map_bytes([count])[0]) / count
-        b.row(f"memory, {count} photons", per_photon, 20.0, "Jensen's photon record (no tree)",
-              32.0, per_photon, "bytes per photon", at_least=False, unit="bytes/photon")
-    result = {"scene": scene_name, "photons_emitted": photons,
-              "photons_stored": int(len(b.points)), "queries": int(b.queries.shape[0]),
-              "radius": b.radius, "repeats": repeats, "threads": int(dr.thread_count()),
+def _bench_memory(b: _Bench, scene_name, counts):
+    """Row 7: bytes per stored photon, measured in a fresh process (:mod:`.memprobe`)."""
+    from .memprobe import probe
+    for count in counts:
+        m = probe(scene_name, count)
+        b.row(f"memory, {count:,} photons emitted", m["peak_rss_bytes"] / m["stored"],
+              m["drjit_peak_bytes"] / m["stored"], "Dr.Jit's own peak (B/photon)", 80.0,
+              m["peak_rss_bytes"] / m["stored"], "process peak, bytes per stored photon",
+              at_least=False, unit="B/photon", stored=m["stored"],
+              peak_rss_bytes=m["peak_rss_bytes"], drjit_peak_bytes=m["drjit_peak_bytes"],
+              baseline_rss_bytes=m["baseline_rss_bytes"], seconds=m["seconds"])
+
+
+def run_bench(out_json=None, scene_name: str = "cornell_box", size: str = "full",
+              repeats: int | None = None, progress=print) -> dict:
+    """Run every benchmark at ``size`` ("full" or "smoke"); return (and with ``out_json``
+    write) the table."""
+    cfg = dict(SIZES[size])
+    if repeats is not None:
+        cfg["repeats"] = repeats
+    b = _Bench(cfg["repeats"], progress or (lambda *a: None))
+    scene = load_scene(scene_name, resolution=cfg["resolution"], spp=1)
+    traced = trace_photons(scene, cfg["photons"], 1, 0)
+    hits = np.array(first_hits(scene, 1, 0)[0].p, dtype=np.float32).T
+    rng = np.random.default_rng(5)
+    cornell = _Workload(scene_name, traced.position, np.ascontiguousarray(
+        hits[rng.permutation(len(hits))]), fixed_radius(scene, None, 0.05))
+    b.say(f"{scene_name}: {cfg['photons']:,} photons emitted, {len(traced):,} stored, "
+          f"{len(hits):,} hit points, r = {cornell.radius:.4g}")
+    pts, qs = room_workload(cfg["room"], cfg["room"])
+    for workload in (cornell, _Workload("room", pts, qs, 0.05)):
+        _bench_queries(b, workload)
+    _bench_estimate(b, scene, cfg["photons"])
+    _bench_builds(b, scene, cfg["builds"])
+    _bench_tracing(b, scene_name, cfg["resolution"], cfg["trace"], cfg["path_spp"])
+    _bench_emitters(b, cfg["emitter_photons"])
+    _bench_memory(b, scene_name, cfg["memory"])
+    result = {"scene": scene_name, "size": size, "photons_emitted": cfg["photons"],
+              "photons_stored": len(traced), "queries": len(hits), "radius": cornell.radius,
+              "repeats": cfg["repeats"], "threads": int(dr.thread_count()),
+              "code": code_version(), "commit": git_commit(), "machine": machine(),
               "rows": b.rows}
     if out_json:
         Path(out_json).parent.mkdir(parents=True, exist_ok=True)
@@ -238,12 +321,13 @@ def run_bench(out_json=None, scene_name: str = "cornell_box", photons: int = 100
 def format_bench(result) -> str:
     lines = [f"{result['scene']}: {result['photons_stored']} photons stored, "
              f"{result['queries']} queries, r = {result['radius']:.4g}, "
-             f"{result['threads']} threads, medians of {result['repeats']}",
-             f"{'benchmark':30} {'ours':>9} {'baseline':>9} {'ratio':>6} {'target':>8}  "
+             f"{result['threads']} threads, medians of {result['repeats']} "
+             f"(code {result['code']}, commit {result['commit'] or 'unknown'})",
+             f"{'benchmark':44} {'ours':>9} {'baseline':>9} {'ratio':>6} {'target':>8}  "
              f"met  (ratio = ...; baseline)"]
     for r in result["rows"]:
         target = f"{'>=' if r['target_is'] == 'at least' else '<='} {r['target']:g}"
-        lines.append(f"{r['benchmark']:30} {r['ours']:9.4g} {r['baseline']:9.4g} "
+        lines.append(f"{r['benchmark']:44} {r['ours']:9.4g} {r['baseline']:9.4g} "
                      f"{r['ratio']:6.2f} {target:>8}  {'yes' if r['met'] else 'NO ':3}"
                      f"  ({r['ratio_meaning']}; {r['baseline_name']}, {r['unit']})")
     return "\n".join(lines)

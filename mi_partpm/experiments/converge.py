@@ -4,13 +4,15 @@ Every method renders the same scene, film and camera, and each image is compared
 reference: Mitsuba's ``path`` at a high sample count, rendered in chunks of
 ``CHUNK_SPP`` samples with different seeds (a single wavefront of that many samples would not
 fit in memory) and cached in the output directory (``reference.exr`` and ``reference.json``,
-reused when the scene, size, sample count and code version match).
+reused when the scene file, size, sample count and Mitsuba version match: the reference does
+not depend on this project's code).
 
 - **partpm**: one progressive render with ``time_limit = seconds``; after passes 1, 2, 3, 4,
   6, 8, 12, ... the image so far is developed and measured (the time spent doing so is not
   counted).
 - **path**: renders of 1, 2, 4, ... samples per pixel, each timed on its own, until one takes
-  longer than ``seconds``.
+  longer than ``seconds`` (above ``PATH_CHUNK_SPP`` samples, in chunks of that many, whose
+  times add up).
 - **pm**: single-pass renders of 10^4, 2 x 10^4, 4 x 10^4, ... photons with k nearest, until
   one takes longer than ``seconds``.
 
@@ -33,7 +35,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import metrics
-from .provenance import code_version
+from .provenance import code_version, scene_digest
 from ..props import check_float, check_int
 from ..scenes import check_scene, load_scene
 from ..timing import timed
@@ -98,8 +100,9 @@ def _image(img) -> np.ndarray:
 
 def path_reference(s: ConvergeSettings, out: Path, say) -> np.ndarray:
     """Mitsuba's ``path`` at ``reference_spp``, averaged over chunks; cached in ``out``."""
-    meta = {"scene": s.scene, "resolution": list(s.resolution), "spp": s.reference_spp,
-            "seed": s.seed, "code": code_version()}
+    meta = {"scene": s.scene, "scene_sha256": scene_digest(s.scene, s.data_dir),
+            "resolution": list(s.resolution), "spp": s.reference_spp, "seed": s.seed,
+            "mitsuba": mi.__version__}
     exr, info = out / "reference.exr", out / "reference.json"
     if exr.is_file() and info.is_file() and json.loads(info.read_text()) == meta:
         say(f"reference: reusing {exr}")
@@ -130,7 +133,7 @@ def _partpm(s: ConvergeSettings, ref, say) -> list:
     checkpoints = {1, 2, 3, 4} | {int(round(2 ** (e / 2))) for e in range(4, 60)}
 
     def on_pass(info):
-        if info["pass"] in checkpoints or info["pass"] == info["passes"]:
+        if info["pass"] in checkpoints or info["last"]:
             err = metrics.rel_mse(_image(info["image"]()), ref)
             rows.append({"method": "partpm", "seconds": info["elapsed"], "rel_mse": err,
                          "setting": f"{info['pass']} passes"})
@@ -163,14 +166,23 @@ def _doubling(method: str, s: ConvergeSettings, ref, say, render, start: int, un
         amount *= 2
 
 
+#: Most samples per pixel of one ``path`` render; more are rendered in chunks of this many
+#: (one wavefront of 160 x 160 x 16384 samples needs about 10 GB).
+PATH_CHUNK_SPP = 1024
+
+
 def _path(s: ConvergeSettings, ref, say) -> list:
     scene = _scene(s)
     integrator = mi.load_dict({"type": "path"})
 
     def render(spp):
-        img, seconds = timed(lambda: mi.render(scene, integrator=integrator, spp=spp,
-                                               seed=s.seed))
-        return _image(img), seconds
+        total, seconds = 0.0, 0.0
+        for chunk in range(-(-spp // PATH_CHUNK_SPP)):
+            n = min(PATH_CHUNK_SPP, spp - chunk * PATH_CHUNK_SPP)
+            img, t = timed(lambda: mi.render(scene, integrator=integrator, spp=n,
+                                             seed=s.seed + chunk))
+            total, seconds = total + _image(img) * n, seconds + t
+        return total / spp, seconds
     return _doubling("path", s, ref, say, render, 1, "spp")
 
 

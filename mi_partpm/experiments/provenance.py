@@ -13,7 +13,7 @@ import subprocess
 from functools import lru_cache
 from pathlib import Path
 
-__all__ = ["code_version", "machine", "git_commit"]
+__all__ = ["code_version", "machine", "git_commit", "scene_digest"]
 
 _ROOT = Path(__file__).resolve().parents[2]
 #: The source folders whose files make a result (relative to the project's root).
@@ -63,3 +63,15 @@ def machine() -> dict:
             "cores": os.cpu_count(), "memory_bytes": memory, "os": platform.platform(),
             "python": platform.python_version(), "mitsuba": mi.__version__,
             "drjit": dr.__version__, "threads": dr.thread_count()}
+
+
+def scene_digest(scene: str, data_dir=None) -> str:
+    """SHA-256 (16 hex digits) of a scene's file and the data files it names (built-in name
+    or path), for caches that depend on the scene and not on the code."""
+    from ..data import find_data_file
+    from ..scenes import SCENE_DATA, scene_path
+    path = scene_path(scene)
+    digest = hashlib.sha256(path.read_bytes())
+    for name in SCENE_DATA.get(path.stem, {}).values():
+        digest.update(find_data_file(name, data_dir).read_bytes())
+    return digest.hexdigest()[:16]

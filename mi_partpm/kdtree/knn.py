@@ -57,7 +57,9 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     k : int
         Neighbours wanted, >= 1.
     contribution : callable(index, dist2, active, state) -> result_type, optional
-        Summed over the neighbours found, as in :func:`~.radius.radius_query`.
+        Summed over the neighbours found, as in :func:`~.radius.radius_query`, after the
+        walk; when ``state`` has a ``radius2`` field it is set to each query's final squared
+        radius first (what a density kernel weighs by).
     result_type : Dr.Jit array type
         Type of ``contribution``'s results (default: ``mi.Float``).
     max_radius : float or mi.Float, optional
@@ -239,6 +241,9 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
         # (the heap's root), as Jensen's estimate with fewer than k photons has it.
         r2 = dr.select(count < ku, dr.select(count > 0, heap_d.read(0, count > 0), 0.0), r2)
     total = dr.zeros(result_type, width)
+    if dr.hint(hasattr(state, "radius2"), mode="scalar"):
+        # The callbacks see each query's final radius (a density kernel weighs by it).
+        state.radius2 = mi.Float(r2)
     if dr.hint(contribution is not None, mode="scalar"):
         j = mi.UInt32(0)
         while j < count:

@@ -1,0 +1,93 @@
+"""Final gathering (Jensen's two-pass method): the global map read one bounce away.
+
+At every visible point, ``samples`` rays are drawn from its BSDF; each follows mirror and glass
+to the next surface with a non-delta lobe, where the global photon map gives the radiance
+arriving back (:func:`~mi_partpm.estimate.gather_flux`). Their mean, times the throughput, is
+the light the visible point reflects from other surfaces. The global map is thus never read
+at the visible point itself, where its blur would show; direct light there comes from emitter
+sampling and caustics from the caustic map. Without a caustic map, a gather ray that reaches
+an emitter through mirrors or glass brings the caustic light instead (``caustics``).
+
+The gather rays draw their random numbers from their own streams (seed, pass, ray), so the
+eye paths' sampler is left as Mitsuba's loop expects it.
+"""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .estimate import gather_flux
+from .props import UNLIMITED_DEPTH, segment_limit
+
+__all__ = ["final_gather"]
+
+
+def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius: float,
+                 seed: int = 0, max_depth: int = -1, kernel: str = "box",
+                 caustics: bool = False):
+    """The final gather's radiance per eye path (``width`` of them) and the photons found,
+    summed over ``samples`` rays from each visible point of ``points``."""
+    from .progressive import accumulate
+    total = dr.zeros(mi.Spectrum, width)
+    found = dr.zeros(mi.Float, width)
+    if not len(points):
+        return total, found
+    limit = segment_limit(max_depth)
+    ctx = mi.BSDFContext()
+    count = len(points)
+    for j in range(samples):
+        rng = mi.PCG32(count, dr.opaque(mi.UInt64, seed & 0xFFFFFFFFFFFFFFFF),
+                       dr.arange(mi.UInt64, count) * samples + j)
+        si, bsdf = points.si, points.bsdf
+        bs, weight = bsdf.sample(ctx, si, rng.next_float32(),
+                                 mi.Point2f(rng.next_float32(), rng.next_float32()))
+        # Only the non-delta lobes: the delta ones are the eye path's own continuation.
+        active = dr.any(weight != 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        beta = points.beta * weight / samples
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        # Segments left: the eye path's, this one, then photons of max_bounce - 1 at most.
+        bounce_left = points.max_bounce - 1 if max_depth != UNLIMITED_DEPTH else None
+        hit, hit_bsdf, active, beta, seen = _to_non_delta(scene, ray, beta, active, rng,
+                                                          limit, caustics)
+        if bounce_left is not None:
+            active &= points.max_bounce > 1
+        est = gather_flux(maps, hit, hit_bsdf, radius, active, max_bounce=bounce_left,
+                          kernel=kernel)
+        value = dr.select(active, beta * est.radiance(), 0.0) + seen
+        part_total, part_found = accumulate(points, value, est.found, width)
+        total += part_total
+        found += part_found
+        dr.eval(total, found)
+    return total, found
+
+
+def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool, chain: int = 8):
+    """Follow delta lobes from ``ray`` to the first surface with a non-delta lobe (at most
+    ``chain`` delta bounces): (hit, its BSDF, reached, throughput, emission seen after one
+    delta bounce or more when ``caustics``)."""
+    seen = dr.zeros(mi.Spectrum, dr.width(beta))
+    ctx_delta = mi.BSDFContext()
+    ctx_delta.type_mask = mi.BSDFFlags.Delta
+    hit = dr.zeros(mi.SurfaceInteraction3f, dr.width(beta))
+    reached = dr.zeros(mi.Bool, dr.width(beta))
+    for step in range(min(chain, max(limit - 1, 1))):
+        si = scene.ray_intersect(ray, active)
+        if caustics and step > 0:
+            emitter = si.emitter(scene, active)
+            lit = active & (emitter != None)    # noqa: E711
+            seen += dr.select(lit, beta * emitter.eval(si, lit), 0.0)
+        active &= si.is_valid()
+        bsdf = si.bsdf(ray)
+        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        hit = dr.select(smooth, si, hit)
+        reached |= smooth
+        active &= ~smooth & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
+        bs, weight = bsdf.sample(ctx_delta, si, rng.next_float32(),
+                                 mi.Point2f(rng.next_float32(), rng.next_float32()), active)
+        beta = dr.select(active, beta * weight, beta)
+        active &= dr.any(weight != 0)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        dr.eval(hit, reached, active, beta, ray, seen)
+        if not dr.any(active)[0]:
+            break
+    return hit, hit.bsdf(), reached, beta, seen
