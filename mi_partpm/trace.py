@@ -237,8 +237,11 @@ class _Run:
         # run hands the same arrays to the build.
         lanes_of = dr.gather(mi.UInt32, out[-1], dr.arange(mi.UInt32, stored))
         keep = dr.argsort(lanes_of) if stored else dr.zeros(mi.UInt32, 0)
-        photons = Photons(*[dr.gather(type(a), a, keep) for a in out[:-1]],
-                          emitted=self.photon_count, map_count=0)
+        points, code, flux, bounces = [dr.gather(type(a), a, keep) for a in out[:-1]]
+        # A photon's map is its lane's.
+        maps = dr.gather(mi.UInt32, mi.UInt32(lane_map), dr.gather(mi.UInt32, lanes_of, keep))
+        photons = Photons(points, code, flux, maps, bounces, emitted=self.photon_count,
+                          map_count=0)
         dr.eval(photons.points, photons.code, photons.flux, photons.maps, photons.bounces)
         return photons, int(segments[0])
 
@@ -248,10 +251,13 @@ class _Run:
         ray, power = emit(self.scene, rng, self.photon_count, self.table)
         out = (dr.zeros(mi.Point3f, capacity), dr.zeros(mi.UInt32, capacity),
                dr.zeros(mi.Spectrum, capacity), dr.zeros(mi.UInt32, capacity),
-               dr.zeros(mi.UInt32, capacity), dr.zeros(mi.UInt32, capacity))
+               dr.zeros(mi.UInt32, capacity))
         counter = dr.zeros(mi.UInt32, 1)
-        segments = _trace_paths(self.scene, rng, ray, power, map_id, out, counter, capacity,
-                                self.max_depth, self.rr_depth, self.min_bounce, self.paths)
+        # Recording the loop once instead of twice (the loop optimisation's second recording)
+        # saves about 0.2 s a call; the kernel is the same.
+        with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
+            segments = _trace_paths(self.scene, rng, ray, power, out, counter, capacity,
+                                    self.max_depth, self.rr_depth, self.min_bounce, self.paths)
         total = dr.sum(segments)
         dr.eval(out, counter, total)
         return out, counter, total
@@ -268,21 +274,22 @@ def shading_correction(si, wi):
 
 
 @dr.syntax
-def _trace_paths(scene, rng, ray, power, map_id, out, counter, capacity, max_depth, rr_depth,
+def _trace_paths(scene, rng, ray, power, out, counter, capacity, max_depth, rr_depth,
                  min_bounce, paths):
     """The bounce loop of one batch (one kernel): store, scatter, roulette. Returns the
     segments each lane traced. ``paths`` is the index in :data:`PATHS`."""
-    positions, codes, fluxes, maps, bounces, lanes = out
-    lane = dr.arange(mi.UInt32, dr.width(map_id))
+    positions, codes, fluxes, bounces, lanes = out
+    width = dr.width(power)
+    lane = dr.arange(mi.UInt32, width)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
     active = dr.any(power != 0) & dr.all(dr.isfinite(power))
-    bounce = dr.zeros(mi.UInt32, dr.width(map_id)) + 1
-    segments = dr.zeros(mi.UInt32, dr.width(map_id))
+    bounce = dr.zeros(mi.UInt32, width) + 1
+    segments = dr.zeros(mi.UInt32, width)
     depth_limit = dr.opaque(mi.UInt32, max_depth)
     rr_from = dr.opaque(mi.UInt32, rr_depth)
     store_from = dr.opaque(mi.UInt32, min_bounce)
     room = dr.opaque(mi.UInt32, capacity)
-    delta_only = dr.full(mi.Bool, True, dr.width(map_id))   # every bounce so far was delta
+    delta_only = dr.full(mi.Bool, True, width)   # every bounce so far was delta
     while dr.hint(active, label="partpm_trace"):
         si = scene.ray_intersect(ray, active)
         segments += 1
@@ -301,7 +308,6 @@ def _trace_paths(scene, rng, ray, power, map_id, out, counter, capacity, max_dep
         dr.scatter(positions, si.p, slot, write)
         dr.scatter(codes, encode_direction(-ray.d), slot, write)
         dr.scatter(fluxes, power * shading_correction(si, -ray.d), slot, write)
-        dr.scatter(maps, map_id, slot, write)
         dr.scatter(bounces, bounce, slot, write)
         dr.scatter(lanes, lane, slot, write)
 

@@ -25,15 +25,23 @@ GOLDEN = Path(__file__).parent / "golden"
 def test_one_pass_is_the_single_pass_image():
     """passes = 1 renders what the single-pass partpm rendered before progressive rendering
     existed: the golden image was written by that code (see golden/README.md). Photons and
-    eye samples are the same; only the order of float additions may differ, so the bound is
-    relative 1e-5 (plus 1e-6 absolute for black pixels)."""
+    eye samples are the same. What may differ is float rounding: the order of additions, and,
+    on another CPU (another vector width, fused multiply-adds or not), a photon lying exactly
+    on a query's radius may fall in or out. One photon of the 100-300 found per pixel moves
+    the pixel by 0.3-1%. So: all but 1% of the values within 1e-5 relative, none off by more
+    than 2% (measured: within 1e-5 on the machine that made it; on an AMD EPYC, one value
+    of 1,728 off by 8e-4). A change
+    of the estimate, the photons or the eye samples moves most pixels by far more."""
     golden = np.array(mi.Bitmap(str(GOLDEN / "partpm_single_pass_cornell_box.exr")),
                       dtype=np.float64)[..., :3]
     scene = mi_partpm.load_scene("cornell_box", resolution=(24, 24), spp=2)
     img = render(scene, mi.load_dict({"type": "partpm", "photon_count": 20_000,
                                       "map_count": 3, "seed": 4, "passes": 1}))
     assert golden.mean() > 0.1
-    np.testing.assert_allclose(img, golden, rtol=1e-5, atol=1e-6)
+    rel = np.abs(img - golden) / (np.abs(golden) + 1e-6)
+    print(f"values off by more than 1e-5: {np.mean(rel > 1e-5):.4%}, largest {rel.max():.3g}")
+    assert np.mean(rel > 1e-5) <= 0.01
+    assert rel.max() < 0.02
 
 
 def test_radius_update_follows_the_formula():
