@@ -18,7 +18,8 @@ TOML layout (every key optional)::
                                    # with compute, and which the "tiles" gather sends
 
     [memory]
-    sram_bytes = 2097152           # local SRAM per PE; a map larger than this lives in DRAM
+    sram_bytes = 2097152           # local SRAM per PE, shared by its maps; what does not fit
+                                   # streams from DRAM
     dram_bytes_per_cycle = 16      # DRAM bandwidth per channel
     dram_latency_cycles = 100
     dram_burst_bytes = 64
@@ -66,7 +67,8 @@ def _check_number(owner, name, value, low=0.0, low_open=True, integer=False):
 
 @dataclass(frozen=True)
 class MemoryConfig:
-    """A PE's storage levels: local SRAM, and the DRAM behind it for maps that do not fit."""
+    """A PE's storage levels: local SRAM, shared by the PE's maps, and the DRAM behind it for
+    the maps that do not fit (:func:`hwsim.work.sram_resident`)."""
 
     sram_bytes: int = 2 * 1024 * 1024
     dram_bytes_per_cycle: float = 16.0

@@ -1,8 +1,9 @@
 """The discrete-event model: PEs that share DRAM channels and queue for them.
 
 Each PE runs the same (map, tile) items (:mod:`hwsim.work`) as the analytic model
-(:mod:`hwsim.model`), in the same
-tile-major order. An item that reads DRAM sends one request of its bytes to its channel
+(:mod:`hwsim.model`), in the same tile-major order, with the same maps resident in the PE's
+shared SRAM (:func:`hwsim.work.sram_resident`). An item of a map that is not resident reads
+DRAM: it sends one request of its bytes to its channel
 (PE p on channel p mod ``memory.dram_channels``); the channel serves requests first come,
 first served, each for bytes / ``dram_bytes_per_cycle`` cycles. The item ends when its compute,
 its latency bound and its transfer are all done:

@@ -2,11 +2,14 @@
 
 n maps run on P PEs (map m on PE m mod P). The Q queries are cut into tiles of
 ``tile_queries``; a PE works tile by tile and, within a tile, map by map (tile-major order),
-so that its partial results of a tile are complete as early as possible. For map m and tile k:
+so that its partial results of a tile are complete as early as possible. A PE's maps are
+therefore resident together and share its ``memory.sram_bytes``: in map order, a map is kept
+in SRAM if it fits in what the PE's maps kept before it left free, and the others stream from
+DRAM in every tile (:func:`hwsim.work.sram_resident`). For map m and tile k:
 
     compute  c_mk = sum_{q in k} nodes_q * cycles_per_node + tested_q * cycles_per_test
                                  + found_q * cycles_per_accumulate
-    memory   0 if the map fits the PE's SRAM, else the larger of
+    memory   0 if the map is resident in its PE's SRAM, else the larger of
              bandwidth  bursts(bytes_mk) / dram_bytes_per_cycle
              latency    sum_{q in k} nodes_q * dram_latency_cycles / outstanding_queries
     time     t_mk = max(c_mk, memory)   (memory overlapped with compute; the excess is stall)

@@ -2,12 +2,14 @@
 
 For every recorded n the array has one PE per map (the paper's proposal) and the frame is
 simulated with and without the gather; the speedup against n = 1 shows what the gather costs.
-For the largest n, a sweep over PE counts P (maps shared round-robin) and gather networks
-(a bus; trees and rings, pipelined and store-and-forward) shows where adding PEs stops paying:
-the first P from which doubling P shortens the frame by less than 5%. A second sweep puts
-every map in DRAM (no SRAM) and lets the PEs share 1 or 4 DRAM channels, or have one each:
-the discrete-event model shows where contention for the channels, not the gather, ends the
-scaling.
+For the largest n, a sweep over PE counts P (maps shared round-robin, a PE's maps sharing its
+SRAM) and gather networks (a bus; trees and rings, pipelined and store-and-forward) shows
+where adding PEs stops paying: the first P from which doubling P shortens the frame by less
+than 5%. A second sweep puts every map in DRAM (no SRAM) and lets the PEs share 1 or 4 DRAM
+channels, or have one each: the discrete-event model shows where contention for the
+channels, not the gather, ends the scaling. Every row of every table (per n, sweep,
+contention, sensitivity) carries the bytes a frame reads from DRAM over all PEs
+(``dram_bytes``).
 """
 from __future__ import annotations
 
@@ -54,15 +56,19 @@ def sensitivity(config, loads, factors=(0.5, 2.0)) -> list:
     def measure(cfg):
         a = simulate(cfg.with_(pe_count=first), loads[first])
         b = simulate(cfg.with_(pe_count=last), loads[last])
-        return a.frame_cycles / b.frame_cycles, b.gather_share, b.energy_joules / a.energy_joules
-    rows = [{"constant": "(as configured)", "factor": 1.0,
-             **dict(zip(("speedup", "gather_share", "energy_ratio"), measure(config)))}]
+        return {"speedup": a.frame_cycles / b.frame_cycles, "gather_share": b.gather_share,
+                "energy_ratio": b.energy_joules / a.energy_joules,
+                "dram_bytes": _dram_bytes(b), "dram_bytes_smallest_n": _dram_bytes(a)}
+    rows = [{"constant": "(as configured)", "factor": 1.0, **measure(config)}]
     for name in ASSUMED:
         for f in factors:
-            sp, sh, en = measure(_scaled(config, name, f))
-            rows.append({"constant": name, "factor": f, "speedup": sp, "gather_share": sh,
-                         "energy_ratio": en})
+            rows.append({"constant": name, "factor": f, **measure(_scaled(config, name, f))})
     return rows
+
+
+def _dram_bytes(report) -> float:
+    """Bytes one frame reads from DRAM, over all PEs."""
+    return float(report.dram_bytes.sum())
 
 
 #: The gather networks of the sweep: (label, topology, pipelined), every variant of
@@ -154,7 +160,8 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
 
 def _per_n(config, loads):
     """One PE per map for every recorded n: rows with speedups against the smallest n, and
-    the largest n's frame (for the per-PE plots)."""
+    the largest n's frame (for the per-PE plots). ``dram_bytes`` is the frame's, over all PEs;
+    ``dram_bytes_max`` the busiest PE's."""
     ns = sorted(loads)
     rows = []
     base_nodes = float(loads[ns[0]].nodes_visited.sum()) if ns[0] == 1 else None
@@ -166,6 +173,7 @@ def _per_n(config, loads):
                      "queries_per_second": r.queries_per_second,
                      "load_imbalance": r.load_imbalance, "gather_share": r.gather_share,
                      "utilisation_mean": float(r.utilisation.mean()),
+                     "dram_bytes": _dram_bytes(r),
                      "dram_bytes_max": float(r.dram_bytes.max()),
                      "energy_mj": r.energy_joules * 1e3,
                      "nj_per_query": r.energy_joules / r.queries * 1e9,
@@ -190,7 +198,7 @@ def _network_sweep(config, workload, pes) -> list:
             sweep.append({"gather": label, "topology": topology, "pipelined": pipelined,
                           "pe_count": p, "frame_cycles": r.frame_cycles,
                           "gather_cycles": r.gather_cycles, "seconds": r.seconds,
-                          "gather_share": r.gather_share})
+                          "gather_share": r.gather_share, "dram_bytes": _dram_bytes(r)})
     _add_speedups(sweep, "gather")
     return sweep
 
@@ -204,6 +212,7 @@ def _contention_sweep(config, workload, pes) -> list:
             r = simulate(cfg, workload)
             contention.append({"dram_channels": channels, "pe_count": p, "model": r.model,
                                "frame_cycles": r.frame_cycles, "seconds": r.seconds,
+                               "dram_bytes": _dram_bytes(r),
                                "stall_share": float(r.pe_stall.sum() / (
                                    r.pe_busy.sum() + r.pe_stall.sum())),
                                "channel_utilisation": float(
@@ -273,65 +282,100 @@ def _or_na(value, width):
 
 
 def format_report(result) -> str:
+    """The report as text: the per-n table, the P x gather network table, and one line each
+    for shared DRAM, the calibration and the sensitivity sweep. Every table row and line gives
+    the frame's DRAM traffic (MB read per frame, over all PEs)."""
+    n = result["largest_n"]["map_count"]
+    lines = _format_rows(result["rows"]) + _format_sweep(result, n)
+    if result.get("contention"):
+        lines.append(_format_contention(result, n))
+    cal = result.get("calibration")
+    if cal:
+        lines.append(_format_calibration(cal))
+    if result.get("sensitivity"):
+        lines.append(_format_sensitivity(result["sensitivity"], n, result["rows"][0]["n"]))
+    return "\n".join(lines)
+
+
+def _mb(nbytes) -> float:
+    return nbytes / 1e6
+
+
+def _format_rows(rows) -> list:
     lines = [f"{'n=PEs':>5} {'frame ms':>9} {'fps':>8} {'speedup':>8} {'w/o gather':>10} "
              f"{'gather %':>8} {'imbalance':>9} {'util':>5} {'DRAM MB':>8} {'nodes x':>7} "
              f"{'mJ':>8} {'nJ/query':>8}"]
-    for r in result["rows"]:
+    for r in rows:
         lines.append(f"{r['n']:5d} {r['seconds'] * 1e3:9.2f} {r['frames_per_second']:8.2f} "
                      f"{r['speedup']:8.2f} {r['speedup_without_gather']:10.2f} "
                      f"{r['gather_share'] * 100:8.2f} {r['load_imbalance']:9.3f} "
-                     f"{r['utilisation_mean']:5.2f} {r['dram_bytes_max'] / 1e6:8.1f} "
+                     f"{r['utilisation_mean']:5.2f} {_mb(r['dram_bytes']):8.1f} "
                      f"{_or_na(r['replicated_traversal'], 7)} {r['energy_mj']:8.3f} "
                      f"{r['nj_per_query']:8.1f}")
-    n = result["largest_n"]["map_count"]
-    lines.append(f"n = {n} maps on P PEs: frame ms (speedup vs P = 1) per gather network "
-                 f"(s&f: store-and-forward)")
-    labels = list(dict.fromkeys(s["gather"] for s in result["sweep"]))
-    lines.append(f"{'P':>5} " + " ".join(f"{t:>16}" for t in labels))
-    by = {(s["gather"], s["pe_count"]): s for s in result["sweep"]}
-    for p in sorted({s["pe_count"] for s in result["sweep"]}):
+    return lines
+
+
+def _format_sweep(result, n) -> list:
+    """Frame ms (speedup) per P and gather network, and the DRAM MB per frame of each P (the
+    same for every network: the network does not change which maps stay in SRAM)."""
+    sweep = result["sweep"]
+    lines = [f"n = {n} maps on P PEs: frame ms (speedup vs P = 1) per gather network "
+             f"(s&f: store-and-forward), DRAM MB per frame"]
+    labels = list(dict.fromkeys(s["gather"] for s in sweep))
+    lines.append(f"{'P':>5} " + " ".join(f"{t:>16}" for t in labels) + f" {'DRAM MB':>9}")
+    by = {(s["gather"], s["pe_count"]): s for s in sweep}
+    for p in sorted({s["pe_count"] for s in sweep}):
         lines.append(f"{p:5d} " + " ".join(
             f"{by[t, p]['seconds'] * 1e3:8.1f} ({by[t, p]['speedup']:5.1f}x)".rjust(16)
-            for t in labels))
+            for t in labels) + f" {_mb(by[labels[0], p]['dram_bytes']):9.1f}")
     parts = [f"{k}: P = {v}" if v < n else f"{k}: still paying at P = {v} = n"
              for k, v in result["saturation_pe_count"].items()]
     lines.append(f"where doubling the PEs gains under 5% (n = {n}): {'; '.join(parts)}")
-    if result.get("contention"):
-        parts = []
-        for label, p in result["contention_saturation_pe_count"].items():
-            best = max((c for c in result["contention"]
-                        if _channels_label(c["dram_channels"]) == label),
-                       key=lambda c: c["speedup"])
-            where = f"saturates at P = {p}" if p < n else f"still paying at P = {p} = n"
-            parts.append(f"{label}: {where} (best speedup {best['speedup']:.1f} at "
-                         f"P = {best['pe_count']})")
-        lines.append(f"every map in DRAM (n = {n}), DRAM channels {'; '.join(parts)}")
-    cal = result.get("calibration")
-    if cal and "skipped" in cal:
-        lines.append(f"calibration skipped: {cal['skipped']}")
-    elif cal:
-        c = cal["costs"]
-        text = (f"calibration on {cal['fit_on']}'s measured per-map times: "
-                f"{c['per_node'] * 1e9:.2f} ns/node, {c['per_test'] * 1e9:.2f} ns/test, "
-                f"{c['per_found'] * 1e9:.2f} ns/found, {c['fixed'] * 1e3:.2f} ms/map; "
-                f"R^2 {cal['self']['r2']:.3f} (largest error "
-                f"{cal['self']['max_rel_error'] * 100:.0f}%)")
-        if "other" in cal:
-            text += (f"; predicts {cal['other_scene']} with R^2 {cal['other']['r2']:.3f} "
-                     f"(largest error {cal['other']['max_rel_error'] * 100:.0f}%)")
-        lines.append(text)
-    sens = result.get("sensitivity", [])
-    if sens:
-        speeds = [r["speedup"] for r in sens]
-        shares = [r["gather_share"] for r in sens]
-        worst = min(sens, key=lambda r: r["speedup"])
-        energy = [r["energy_ratio"] for r in sens]
-        lines.append(f"sensitivity (each assumed constant x0.5 and x2): speedup at n = {n} "
-                     f"{min(speeds):.2f}-{max(speeds):.2f} (as configured "
-                     f"{sens[0]['speedup']:.2f}; lowest with {worst['constant']} "
-                     f"x{worst['factor']:g}), gather share {min(shares) * 100:.2f}-"
-                     f"{max(shares) * 100:.2f}%, energy per frame at n = {n} over n = "
-                     f"{result['rows'][0]['n']} "
-                     f"{min(energy):.2f}-{max(energy):.2f}x (as configured "
-                     f"{sens[0]['energy_ratio']:.2f}x)")
-    return "\n".join(lines)
+    return lines
+
+
+def _format_contention(result, n) -> str:
+    contention = result["contention"]
+    parts = []
+    for label, p in result["contention_saturation_pe_count"].items():
+        best = max((c for c in contention if _channels_label(c["dram_channels"]) == label),
+                   key=lambda c: c["speedup"])
+        where = f"saturates at P = {p}" if p < n else f"still paying at P = {p} = n"
+        parts.append(f"{label}: {where} (best speedup {best['speedup']:.1f} at "
+                     f"P = {best['pe_count']})")
+    traffic = sorted({round(_mb(c["dram_bytes"]), 1) for c in contention})
+    mb = (f"{traffic[0]:.1f}" if len(traffic) == 1 else
+          f"{traffic[0]:.1f}-{traffic[-1]:.1f}")
+    return (f"every map in DRAM (n = {n}, {mb} MB from DRAM per frame), DRAM channels "
+            f"{'; '.join(parts)}")
+
+
+def _format_calibration(cal) -> str:
+    if "skipped" in cal:
+        return f"calibration skipped: {cal['skipped']}"
+    c = cal["costs"]
+    text = (f"calibration on {cal['fit_on']}'s measured per-map times: "
+            f"{c['per_node'] * 1e9:.2f} ns/node, {c['per_test'] * 1e9:.2f} ns/test, "
+            f"{c['per_found'] * 1e9:.2f} ns/found, {c['fixed'] * 1e3:.2f} ms/map; "
+            f"R^2 {cal['self']['r2']:.3f} (largest error "
+            f"{cal['self']['max_rel_error'] * 100:.0f}%)")
+    if "other" in cal:
+        text += (f"; predicts {cal['other_scene']} with R^2 {cal['other']['r2']:.3f} "
+                 f"(largest error {cal['other']['max_rel_error'] * 100:.0f}%)")
+    return text
+
+
+def _format_sensitivity(sens, n, first_n) -> str:
+    speeds = [r["speedup"] for r in sens]
+    shares = [r["gather_share"] for r in sens]
+    energy = [r["energy_ratio"] for r in sens]
+    dram = [_mb(r["dram_bytes"]) for r in sens]
+    worst = min(sens, key=lambda r: r["speedup"])
+    return (f"sensitivity (each assumed constant x0.5 and x2): speedup at n = {n} "
+            f"{min(speeds):.2f}-{max(speeds):.2f} (as configured "
+            f"{sens[0]['speedup']:.2f}; lowest with {worst['constant']} "
+            f"x{worst['factor']:g}), gather share {min(shares) * 100:.2f}-"
+            f"{max(shares) * 100:.2f}%, energy per frame at n = {n} over n = {first_n} "
+            f"{min(energy):.2f}-{max(energy):.2f}x (as configured "
+            f"{sens[0]['energy_ratio']:.2f}x), DRAM per frame at n = {n} "
+            f"{min(dram):.1f}-{max(dram):.1f} MB (as configured {dram[0]:.1f} MB)")

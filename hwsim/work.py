@@ -1,10 +1,12 @@
 """What both frame models share: the work of every (map, tile) pair and the frame it makes.
 
-:func:`tile_work` turns a workload's traversal counts into compute cycles and memory demand per
-map and tile; :func:`frame_report` turns per-PE busy and stall cycles and the tiles' ready
-times into a :class:`FrameReport` (the gather's end, utilisation, DRAM, energy). The analytic
-model (:mod:`hwsim.model`) and the discrete-event model (:mod:`hwsim.events`) differ only in
-how they schedule the tiles between the two.
+:func:`sram_resident` decides which maps a PE keeps in its SRAM: all of a PE's maps run tile
+by tile, so they are resident together and share it. :func:`tile_work` turns a workload's
+traversal counts into compute cycles and memory demand per map and tile (maps not resident
+stream from DRAM, tile by tile); :func:`frame_report` turns per-PE busy and stall cycles and
+the tiles' ready times into a :class:`FrameReport` (the gather's end, utilisation, SRAM and
+DRAM bytes, energy). The analytic model (:mod:`hwsim.model`) and the discrete-event model
+(:mod:`hwsim.events`) differ only in how they schedule the tiles between the two.
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from .config import HardwareConfig
 from .networks import gather_cycles, gather_traffic
 
 __all__ = ["FrameReport", "TileWork", "tile_work", "frame_report", "pipeline_end", "pe_maps",
-           "POSITION_BYTES"]
+           "sram_resident", "POSITION_BYTES"]
 
 #: Bytes of a photon's position (float32 x, y, z): what a distance test reads.
 POSITION_BYTES = 12
@@ -42,7 +44,7 @@ class FrameReport:
     utilisation: np.ndarray        # busy / frame, per PE
     load_imbalance: float          # max / mean of busy + stall over PEs
     gather_share: float            # exposed gather / frame
-    sram_bytes: np.ndarray         # bytes of the largest map held in SRAM, per PE
+    sram_bytes: np.ndarray         # bytes of the maps held in SRAM together, per PE
     dram_bytes: np.ndarray         # bytes read from DRAM per frame, per PE
     dram_bandwidth: np.ndarray     # bytes per second from DRAM, per PE
     dram_channel_busy: np.ndarray  # cycles each DRAM channel transfers, per channel
@@ -66,7 +68,7 @@ class TileWork:
     transfer: np.ndarray    # (n, K) cycles the DRAM channel is busy (0 for maps in SRAM)
     moved: np.ndarray       # (n, K) bytes moved from DRAM
     tile_sizes: np.ndarray  # (K,) queries per tile
-    in_sram: np.ndarray     # (n,) whether each map fits its PE's SRAM
+    in_sram: np.ndarray     # (n,) whether each map is resident in its PE's SRAM
     totals: tuple           # nodes visited, photons tested, photons found over all maps
 
     @property
@@ -75,15 +77,39 @@ class TileWork:
         return np.maximum(self.compute, np.maximum(self.latency, self.transfer))
 
 
+def pe_maps(n: int, pes: int) -> list[np.ndarray]:
+    """The maps of each PE: m on PE m mod P."""
+    return [np.arange(p, n, pes) for p in range(pes)]
+
+
+def sram_resident(map_bytes, pes: int, sram_bytes: int) -> np.ndarray:
+    """(n,) bool: which maps live in their PE's SRAM.
+
+    A PE's maps share its ``sram_bytes``. Each PE takes its maps in map order (m, m + P,
+    m + 2P, ...) and keeps a map in SRAM if it fits in the bytes that the maps kept before it
+    left free (first fit); a map that does not fit streams from DRAM, and a later, smaller
+    map may still fit. With one map per PE this is "the map fits the SRAM"."""
+    sizes = np.asarray(map_bytes)
+    resident = np.zeros(sizes.size, dtype=bool)
+    for maps in pe_maps(sizes.size, pes):
+        free = sram_bytes
+        for m in maps:
+            if sizes[m] <= free:
+                resident[m] = True
+                free -= sizes[m]
+    return resident
+
+
 def tile_work(config: HardwareConfig, workload) -> TileWork:
-    """Per map and tile: compute cycles and the memory demand of maps that spill to DRAM
-    (the bytes of a node and of a photon record are the workload's)."""
+    """Per map and tile: compute cycles and the memory demand of the maps that are not
+    resident in their PE's SRAM (:func:`sram_resident` on ``config.pe_count`` PEs; the bytes
+    of a node and of a photon record are the workload's)."""
     bytes_per_node, bytes_per_photon = workload.bytes_per_node, workload.bytes_per_photon
     nodes, tested, found, sizes = workload.tile_counts(config.tile_queries)
     compute = (nodes * config.cycles_per_node + tested * config.cycles_per_test
                + found * config.cycles_per_accumulate)
     mem = config.memory
-    in_sram = np.asarray(workload.map_bytes) <= mem.sram_bytes
+    in_sram = sram_resident(workload.map_bytes, config.pe_count, mem.sram_bytes)
     touched = nodes * bytes_per_node + tested * POSITION_BYTES + \
         found * (bytes_per_photon - POSITION_BYTES)
     moved = np.ceil(touched / mem.dram_burst_bytes) * mem.dram_burst_bytes
@@ -93,11 +119,6 @@ def tile_work(config: HardwareConfig, workload) -> TileWork:
     latency[in_sram] = 0.0
     return TileWork(compute, latency, transfer, moved, sizes, in_sram,
                     (float(nodes.sum()), float(tested.sum()), float(found.sum())))
-
-
-def pe_maps(n: int, pes: int) -> list[np.ndarray]:
-    """The maps of each PE: m on PE m mod P."""
-    return [np.arange(p, n, pes) for p in range(pes)]
 
 
 def pipeline_end(ready: np.ndarray, gathers: np.ndarray) -> float:
@@ -125,12 +146,7 @@ def frame_report(config, workload, work: TileWork, model, busy, stall, ready,
     compute = float(work_cycles.max())
     frame, gather = _gather_end(config, pes, work, compute, ready, queries)
     seconds = frame / config.clock_hz
-    sram, dram = np.zeros(pes), np.zeros(pes)
-    for m in range(n):
-        pe = m % pes
-        dram[pe] += float(work.moved[m].sum())
-        if work.in_sram[m]:
-            sram[pe] = max(sram[pe], float(workload.map_bytes[m]))
+    sram, dram = _pe_memory(workload, work, pes)
     energy = _energy(config, work, dram, seconds, queries)
     return FrameReport(
         pe_count=pes, map_count=n, queries=queries, model=model, frame_cycles=frame,
@@ -149,6 +165,15 @@ def frame_report(config, workload, work: TileWork, model, busy, stall, ready,
         energy_joules=sum(energy.values()), energy=energy)
 
 
+def _pe_memory(workload, work: TileWork, pes: int) -> tuple[np.ndarray, np.ndarray]:
+    """(bytes held in SRAM, bytes read from DRAM per frame), per PE."""
+    sram, dram = np.zeros(pes), np.zeros(pes)
+    for p, maps in enumerate(pe_maps(workload.n, pes)):
+        dram[p] = float(work.moved[maps].sum())
+        sram[p] = float(np.asarray(workload.map_bytes)[maps][work.in_sram[maps]].sum())
+    return sram, dram
+
+
 def _energy(config, work: TileWork, dram_bytes, seconds, queries) -> dict:
     e = config.energy
     pj = 1e-12
@@ -160,11 +185,3 @@ def _energy(config, work: TileWork, dram_bytes, seconds, queries) -> dict:
             "dram": float(dram_bytes.sum()) * e.pj_per_dram_byte * pj,
             "gather": (link_bytes * e.pj_per_link_byte + adds * e.pj_per_add) * pj,
             "static": config.pe_count * e.static_watts_per_pe * seconds}
-
-
-def pe_maps(n: int, pes: int) -> list[np.ndarray]:
-    """The maps of each PE: m on PE m mod P."""
-    return [np.arange(p, n, pes) for p in range(pes)]
-
-
-

@@ -1,11 +1,24 @@
-"""hwsim: configuration checks and the analytic model against hand-computed cycle counts."""
+"""hwsim: configuration checks and the analytic model against hand-computed cycle counts.
+
+The golden report (tests/golden/hwsim_synthetic_seed7.json) is committed; no test writes it.
+When the model is meant to change, regenerate it on purpose and review the diff:
+
+    python tests/test_hwsim.py --regenerate-golden
+"""
+import json
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from hwsim.config import HardwareConfig, load_config
 from hwsim.model import simulate
 from hwsim.networks import gather_cycles
+from hwsim.work import sram_resident
 from hwsim.workload import MapWorkloads
+
+GOLDEN = Path(__file__).resolve().parent / "golden" / "hwsim_synthetic_seed7.json"
 
 
 def workload(nodes, tested, found, map_bytes=None, bytes_per_node=8, bytes_per_photon=28):
@@ -70,6 +83,57 @@ def test_a_map_that_spills_to_dram_stalls():
     assert fits.frame_cycles == 22 and fits.sram_bytes.tolist() == [1000]
 
 
+def test_two_maps_that_fit_alone_but_not_together_share_one_pe():
+    """SRAM 1000 bytes; map 0 has 700 bytes, map 1 has 600: each fits alone, together 1300 do
+    not. On one PE, map 0 (first in map order) stays in SRAM and map 1 streams from DRAM in
+    each tile (one query per tile; DRAM 1 byte per cycle, 64-byte bursts, latency 10, 2
+    queries in flight).
+
+    Map 0, queries (3 nodes, 2 tested, 1 found) and (1, 1, 1): compute 3*4 + 2*3 + 1*2 = 20
+    and 1*4 + 1*3 + 1*2 = 9, no stall.
+    Map 1, queries (2, 4, 1) and (4, 6, 3): compute 2*4 + 4*3 + 1*2 = 22 and
+    4*4 + 6*3 + 3*2 = 40. Bytes read:
+      tile 0: 2*8 + 4*12 + 1*16 = 80 -> 2 bursts = 128 bytes, 128 cycles; latency 2*10/2 =
+              10; memory 128, stall 128 - 22 = 106;
+      tile 1: 4*8 + 6*12 + 3*16 = 152 -> 3 bursts = 192 bytes, 192 cycles; latency 4*10/2 =
+              20; memory 192, stall 192 - 40 = 152.
+    One PE, tile-major: 20 + 128 + 9 + 192 = 349 cycles = busy 91 + stall 258; DRAM 128 +
+    192 = 320 bytes (per tile: the whole map's 232 bytes would be 4 bursts, 256).
+    Two PEs: each map alone fits its PE's SRAM; compute max(29, 62) = 62, plus the bus
+    gather of 2 PEs x 2 results x 12 bytes / 12 bytes per cycle = 4: 66 cycles, no DRAM.
+    """
+    cfg = BASE.with_(tile_queries=1, outstanding_queries=2,
+                     memory={"sram_bytes": 1000, "dram_bytes_per_cycle": 1,
+                             "dram_latency_cycles": 10, "dram_burst_bytes": 64},
+                     gather={"topology": "bus", "link_bytes_per_cycle": 12,
+                             "hop_latency_cycles": 0, "adder_latency_cycles": 0})
+    w = workload([[3, 1], [2, 4]], [[2, 1], [4, 6]], [[1, 1], [1, 3]], map_bytes=[700, 600])
+    for model in ("analytic", "events"):
+        one = simulate(cfg, w, model=model)
+        assert one.frame_cycles == 349, model
+        assert one.pe_busy.tolist() == [91] and one.pe_stall.tolist() == [258], model
+        assert one.dram_bytes.tolist() == [320] and one.sram_bytes.tolist() == [700], model
+        assert one.energy["dram"] == pytest.approx(320 * 160e-12), model
+    two = simulate(cfg.with_(pe_count=2), w)
+    assert two.compute_cycles == 62 and two.gather_cycles == 4 and two.frame_cycles == 66
+    assert two.pe_stall.tolist() == [0, 0] and two.dram_bytes.tolist() == [0, 0]
+    assert two.sram_bytes.tolist() == [700, 600] and two.energy["dram"] == 0
+
+
+def test_sram_keeps_a_pes_maps_first_fit_in_map_order():
+    # One PE, SRAM 1000: 600 stays, 500 would make 1100 and streams, 300 still fits (900).
+    assert sram_resident([600, 500, 300], 1, 1000).tolist() == [True, False, True]
+    # Two PEs: maps 0 and 2 on PE 0 (900 bytes), map 1 alone on PE 1: all fit.
+    assert sram_resident([600, 500, 300], 2, 1000).tolist() == [True, True, True]
+    # A map larger than the SRAM never fits, even alone; no SRAM holds nothing.
+    assert sram_resident([1200, 100], 1, 1000).tolist() == [False, True]
+    assert sram_resident([1, 1], 1, 0).tolist() == [False, False]
+    r = simulate(BASE.with_(memory={"sram_bytes": 1000}),
+                 workload([[1], [1], [1]], [[1], [1], [1]], [[1], [1], [1]],
+                          map_bytes=[600, 500, 300]))
+    assert r.sram_bytes.tolist() == [900] and r.dram_bytes[0] > 0
+
+
 def test_tiled_gather_overlaps_the_compute():
     cfg = BASE.with_(pe_count=2, gather_schedule="tiles", tile_queries=1,
                      gather={"topology": "bus", "link_bytes_per_cycle": 12,
@@ -80,16 +144,20 @@ def test_tiled_gather_overlaps_the_compute():
     assert r.frame_cycles == 80 + 2 and r.exposed_gather_cycles == 2
 
 
-def test_more_pes_never_slow_the_frame_unless_the_gather_grows():
+def test_more_pes_shorten_the_frame_while_the_gather_grows_less_than_the_compute_shrinks():
+    """16 maps of 200 queries: doubling P halves the maps per PE (tens of thousands of cycles
+    saved) while the pipelined tree gains one level (hop + adder, 6 cycles): the compute and
+    the frame shrink strictly, and with the gather after the queries the frame is exactly
+    compute + gather."""
     rng = np.random.default_rng(3)
     n, q = 16, 200
     w = workload(rng.integers(5, 50, (n, q)), rng.integers(0, 100, (n, q)),
                  rng.integers(0, 30, (n, q)))
     frames = [simulate(BASE.with_(pe_count=p), w) for p in (1, 2, 4, 8, 16)]
     for a, b in zip(frames, frames[1:]):
-        assert b.compute_cycles <= a.compute_cycles
-        assert b.frame_cycles <= a.frame_cycles or \
-            b.gather_cycles - a.gather_cycles >= b.frame_cycles - a.frame_cycles
+        assert b.compute_cycles < a.compute_cycles
+        assert b.frame_cycles == b.compute_cycles + b.gather_cycles
+        assert b.gather_cycles > a.gather_cycles and b.frame_cycles < a.frame_cycles
 
 
 def _random_workload(seed, n=8, q=300, map_bytes=None):
@@ -102,16 +170,21 @@ def _random_workload(seed, n=8, q=300, map_bytes=None):
 
 @pytest.mark.parametrize("topology", ["bus", "tree", "ring"])
 @pytest.mark.parametrize("schedule", ["after", "tiles"])
-@pytest.mark.parametrize("pes", [1, 3, 8])
+@pytest.mark.parametrize("pes", [1, 3, 4, 8])
 def test_event_model_agrees_with_the_analytic_one_without_contention(topology, schedule, pes):
     """Private DRAM channels: the discrete-event model must give the analytic frame exactly,
-    with maps in SRAM and maps in DRAM (SRAM 2500 bytes: about half the maps spill)."""
+    with maps in SRAM and maps in DRAM (SRAM 2500 bytes: about half the maps are too large
+    for it). With fewer PEs than maps, a PE's maps share its SRAM, and some map that would
+    fit alone streams from DRAM because the PE's earlier maps fill the SRAM."""
     cfg = BASE.with_(pe_count=pes, gather_schedule=schedule, tile_queries=37,
                      outstanding_queries=2, gather={"topology": topology},
                      memory={"sram_bytes": 2500, "dram_bytes_per_cycle": 2,
                              "dram_latency_cycles": 30})
     w = _random_workload(pes)
     assert 0 < np.sum(w.map_bytes > 2500) < w.n
+    resident = sram_resident(w.map_bytes, pes, 2500)
+    squeezed_out = (w.map_bytes <= 2500) & ~resident
+    assert squeezed_out.any() == (pes < w.n)
     a = simulate(cfg, w, model="analytic")
     e = simulate(cfg, w, model="events")
     assert (a.model, e.model) == ("analytic", "events")
@@ -203,77 +276,222 @@ def test_config_from_toml(tmp_path):
 
 
 def test_the_shipped_default_toml_spells_out_the_defaults():
-    from pathlib import Path
     import hwsim
     path = Path(hwsim.__file__).parent / "default.toml"
     assert load_config(path) == HardwareConfig()
 
 
-def test_calibration_recovers_known_costs_and_predicts_another_workload():
-    from hwsim.calibrate import check, fit, synthetic_workloads
-    truth = (2e-8, 1e-8, 5e-9, 1e-4)
-    costs = fit(synthetic_workloads(seed=1, costs=truth))
-    np.testing.assert_allclose([costs.per_node, costs.per_test, costs.per_found, costs.fixed],
-                               truth, rtol=1e-3)
-    other = synthetic_workloads(seed=2, queries=800, costs=truth, noise=0.02)
-    report = check(costs, other)
-    assert report["r2"] > 0.98 and report["max_rel_error"] < 0.1
-    assert set(report["per_n"]) == {1, 2, 4, 8}
+#: The costs the calibration tests' times are made of: per node, test, found, and per map.
+CAL_TRUTH = np.array((2e-8, 1e-8, 5e-9, 1e-4))
+#: Relative noise of a map's measured time in the calibration tests (one standard deviation).
+CAL_NOISE = 0.02
+
+
+def _measured_maps(seed, maps=40, queries=100, cache_bytes=None, slow_nodes=1.0):
+    """One workload of ``maps`` maps with measured times made by a noisy process, and those
+    times without the noise. Each map draws its own mean photons found, extra photons tested
+    and nodes per query, so the four costs are told apart (in the synthetic families of
+    :func:`hwsim.calibrate.synthetic_workloads` the counts move together and they are not).
+    A map's time is its counts times :data:`CAL_TRUTH`, its nodes costing ``slow_nodes`` times
+    as much when its bytes exceed ``cache_bytes`` (a cache effect; None: none), times
+    1 + :data:`CAL_NOISE` * N(0, 1)."""
+    rng = np.random.default_rng(seed)
+    found = rng.poisson(rng.uniform(5, 120, (maps, 1)), (maps, queries))
+    tested = found + rng.poisson(rng.uniform(5, 100, (maps, 1)), (maps, queries))
+    nodes = rng.poisson(rng.uniform(10, 80, (maps, 1)), (maps, queries))
+    map_bytes = rng.integers(10_000, 1_000_000, maps)
+    counts = np.stack([nodes.sum(1), tested.sum(1), found.sum(1)], axis=1).astype(float)
+    missed = map_bytes > (cache_bytes if cache_bytes is not None else np.inf)
+    clean = counts @ CAL_TRUTH[:3] + CAL_TRUTH[3] + \
+        np.where(missed, slow_nodes - 1.0, 0.0) * counts[:, 0] * CAL_TRUTH[0]
+    measured = clean * (1 + CAL_NOISE * rng.standard_normal(maps))
+    w = MapWorkloads(n=maps, nodes_visited=nodes.astype(np.uint32),
+                     photons_tested=tested.astype(np.uint32),
+                     photons_found=found.astype(np.uint32), map_photons=map_bytes // 28,
+                     map_bytes=map_bytes, map_seconds=measured[:, None], bytes_per_node=8,
+                     bytes_per_photon=28)
+    return {maps: w}, clean
+
+
+def _what_the_noise_explains(loads, clean):
+    """For least squares on these maps' counts under relative noise :data:`CAL_NOISE`: the
+    standard error of each fitted cost, sqrt(diag(A S A^T)) with A the pseudo-inverse of the
+    features and S = diag((CAL_NOISE * clean)^2), and the share of the times' variance the
+    noise leaves unexplained on average, sum_i S_ii (1 - h_ii) / sum_i (t_i - mean t)^2 (h:
+    the hat matrix's diagonal), which is 1 - R^2 of a correct fit, on average."""
+    from hwsim.calibrate import features
+    x, t, _ = features(loads)
+    a = np.linalg.pinv(x)
+    variance = (CAL_NOISE * clean) ** 2
+    errors = np.sqrt(np.diag(a @ np.diag(variance) @ a.T))
+    hat = np.einsum("ij,ji->i", x, a)
+    return errors, float((variance * (1 - hat)).sum() / ((t - t.mean()) ** 2).sum())
+
+
+#: 1 - R^2 over what the noise leaves on average: a correct fit of 40 maps and 4 costs has
+#: 36 residual degrees of freedom, and a chi-square of 36 falls outside 0.3-2.2 times its
+#: mean with probability under 5e-5 on each side.
+UNEXPLAINED_BAND = (0.3, 2.2)
+
+
+def test_calibration_recovers_costs_from_noisy_times_within_their_standard_errors():
+    """The times are not the fitted model's: each carries 2% noise. The fit must still find
+    each cost within 4 of its standard errors (a correct fit misses that with probability
+    about 6e-5 per cost; the errors are 3-11% of the costs, so the design tells them apart),
+    and R^2 must fall below 1 by what the noise explains, no less (a fit that absorbed the
+    noise) and no more (a fit that missed the costs): :data:`UNEXPLAINED_BAND`."""
+    from hwsim.calibrate import check, fit
+    loads, clean = _measured_maps(seed=1)
+    errors, unexplained = _what_the_noise_explains(loads, clean)
+    assert np.all(errors < 0.15 * CAL_TRUTH)
+    costs = fit(loads)
+    got = np.array([costs.per_node, costs.per_test, costs.per_found, costs.fixed])
+    assert np.all(np.abs(got - CAL_TRUTH) < 4 * errors), (got - CAL_TRUTH) / errors
+    r2 = check(costs, loads)["r2"]
+    low, high = UNEXPLAINED_BAND
+    assert low * unexplained < 1 - r2 < high * unexplained, (1 - r2) / unexplained
+
+
+def test_calibrated_costs_predict_another_workload_to_its_noise():
+    """Costs fitted on one workload predict another's 40 noisy times: a map's error is its own
+    2% noise plus the fit's; the largest of 40 normal deviates exceeds 4 sigma with
+    probability under 0.3%, and the fit's error adds under one more, hence 6 x 2% = 12%."""
+    from hwsim.calibrate import check, fit
+    costs = fit(_measured_maps(seed=1)[0])
+    report = check(costs, _measured_maps(seed=2)[0])
+    assert report["max_rel_error"] < 6 * CAL_NOISE
+    assert set(report["per_n"]) == {40}
+
+
+def test_calibration_detects_a_cost_the_model_does_not_have():
+    """A cache effect the linear model lacks: the nodes of maps over 500 kB (about half)
+    cost 1.5 times as much. The fit cannot express it, so 1 - R^2 exceeds the most the noise
+    alone would leave (the top of :data:`UNEXPLAINED_BAND`): the check reports that the
+    counts do not explain the times."""
+    from hwsim.calibrate import check, fit
+    loads, clean = _measured_maps(seed=3, cache_bytes=500_000, slow_nodes=1.5)
+    assert 10 < np.sum(loads[40].map_bytes > 500_000) < 30
+    _, unexplained = _what_the_noise_explains(loads, clean)
+    r2 = check(fit(loads), loads)["r2"]
+    assert 1 - r2 > UNEXPLAINED_BAND[1] * unexplained, (1 - r2) / unexplained
 
 
 def test_synthetic_workload_is_seeded():
     from hwsim.calibrate import synthetic_workloads
     a, b = synthetic_workloads(seed=5), synthetic_workloads(seed=5)
     assert all(np.array_equal(a[n].nodes_visited, b[n].nodes_visited) for n in a)
+    c = synthetic_workloads(seed=6)
+    assert not np.array_equal(a[8].nodes_visited, c[8].nodes_visited)
 
 
 def _synthetic_dir(tmp_path):
+    """The golden report's workloads: a seeded synthetic family, n = 1, 2, 4, 8, its measured
+    times 2% noisy (not exactly the calibration's model)."""
     from hwsim.calibrate import synthetic_workloads
     from hwsim.workload import save_workloads
     return save_workloads(tmp_path / "workloads", synthetic_workloads(
-        maps=(1, 2, 4, 8), queries=300, seed=7), scene="synthetic seed 7")
+        maps=(1, 2, 4, 8), queries=300, seed=7, noise=CAL_NOISE), scene="synthetic seed 7")
+
+
+#: The golden report's hardware: the defaults with 150 kB of SRAM. The synthetic maps have
+#: 560, 280, 140 and 70 kB at n = 1, 2, 4, 8: one PE per map, those of n = 1 and 2 stream
+#: from DRAM; in the sweep at n = 8, P = 1 and 2 hold 8 and 4 maps of 70 kB, two of which
+#: fit together, and from P = 4 on every map fits.
+GOLDEN_CONFIG = HardwareConfig().with_(memory={"sram_bytes": 150_000})
+#: The report's tables the golden file holds, every row and column.
+GOLDEN_TABLES = ("rows", "sweep", "contention", "sensitivity")
+
+
+def _golden_report(tmp_path):
+    """(what the golden file pins, the whole report) of the golden workload and hardware."""
+    from hwsim.report import run_report
+    result = run_report(_synthetic_dir(tmp_path), GOLDEN_CONFIG, tmp_path / "out")
+    cal = result["calibration"]
+    pinned = {k: result[k] for k in GOLDEN_TABLES}
+    pinned["calibration"] = {"costs": cal["costs"], "r2": cal["self"]["r2"],
+                             "max_rel_error": cal["self"]["max_rel_error"]}
+    return pinned, result
+
+
+def _write_golden(pinned):
+    """The golden file, one table row per line (a model change shows as a readable diff)."""
+    parts = []
+    for key, value in pinned.items():
+        if isinstance(value, list):
+            rows = ",\n".join("  " + json.dumps(row) for row in value)
+            parts.append(f" {json.dumps(key)}: [\n{rows}\n ]")
+        else:
+            parts.append(f" {json.dumps(key)}: {json.dumps(value)}")
+    GOLDEN.write_text("{\n" + ",\n".join(parts) + "\n}\n")
+
+
+def _assert_same(got, want, where="golden"):
+    """``got`` has ``want``'s structure: the same keys, the same number of rows, equal
+    strings and booleans, numbers within 1e-9 relative (zero exactly, NaN as NaN)."""
+    if isinstance(want, dict):
+        assert isinstance(got, dict) and sorted(got) == sorted(want), where
+        for key in want:
+            _assert_same(got[key], want[key], f"{where}.{key}")
+    elif isinstance(want, list):
+        assert isinstance(got, list) and len(got) == len(want), \
+            f"{where}: {len(got)} rows, the golden file has {len(want)}"
+        for i, (g, w) in enumerate(zip(got, want)):
+            _assert_same(g, w, f"{where}[{i}]")
+    elif isinstance(want, float) and want != want:
+        assert got != got, f"{where}: {got}, golden NaN"
+    elif isinstance(want, (int, float)) and not isinstance(want, bool):
+        assert not isinstance(got, bool) and got == pytest.approx(want, rel=1e-9, abs=0), \
+            f"{where}: {got}, golden {want}"
+    else:
+        assert got == want, f"{where}: {got!r}, golden {want!r}"
 
 
 def test_report_on_a_seeded_workload_matches_the_golden_report(tmp_path):
-    """The golden file pins the model's numbers on a fixed workload: a change of the model
-    shows up here, and then the file is regenerated on purpose (see the test's end)."""
-    import json
-    from pathlib import Path
-    from hwsim.report import run_report
-    result = run_report(_synthetic_dir(tmp_path), HardwareConfig(), tmp_path / "out")
-    keep = ("n", "frame_cycles", "compute_cycles", "gather_cycles", "speedup",
-            "load_imbalance")
-    got = [{k: r[k] for k in keep} for r in result["rows"]]
-    golden = Path(__file__).parent / "golden" / "hwsim_synthetic_seed7.json"
-    if not golden.exists():      # first run: write it, and fail so that it gets reviewed
-        golden.write_text(json.dumps(got, indent=1) + "\n")
-        pytest.fail(f"wrote {golden}; review and commit it")
-    want = json.loads(golden.read_text())
-    for g, w in zip(got, want):
-        for k in keep:
-            assert g[k] == pytest.approx(w[k], rel=1e-9), (g["n"], k)
+    """The committed golden file pins every row of the report's tables (per n, P x gather
+    network, shared DRAM, sensitivity) and the calibration on a fixed workload. A change of
+    the model fails here; the file is then regenerated on purpose with
+    ``python tests/test_hwsim.py --regenerate-golden`` (tests/golden/README.md)."""
+    assert GOLDEN.is_file(), (f"{GOLDEN} is missing; it is committed, and only "
+                              f"'python tests/test_hwsim.py --regenerate-golden' writes it")
+    pinned, result = _golden_report(tmp_path)
+    _assert_same(json.loads(json.dumps(pinned)), json.loads(GOLDEN.read_text()))
     assert (tmp_path / "out" / "hwsim.png").stat().st_size > 1000
+    # Every row of every table and CSV gives its frame's DRAM bytes.
+    for table, name in (("rows", "report"), ("sweep", "sweep"), ("contention", "contention"),
+                        ("sensitivity", "sensitivity")):
+        assert all("dram_bytes" in row for row in result[table]), table
+        header = (tmp_path / "out" / f"{name}.csv").read_text().splitlines()[0]
+        assert "dram_bytes" in header.split(","), name
+    # n = 8 on fewer PEs: 8 (4) maps of 70 kB fit alone but only two fit 150 kB together.
+    sweep = {s["pe_count"]: s for s in result["sweep"] if s["gather"] == "tree"}
+    assert sweep[1]["dram_bytes"] > sweep[2]["dram_bytes"] > 0
+    assert sweep[4]["dram_bytes"] == sweep[8]["dram_bytes"] == 0
     # Every map in DRAM: sharing channels uses the event model and never beats private ones.
     cont = {(c["dram_channels"], c["pe_count"]): c for c in result["contention"]}
     assert cont[(1, 8)]["model"] == "events" and cont[(0, 8)]["model"] == "analytic"
     for (channels, p), c in cont.items():
-        assert c["frame_cycles"] >= cont[(0, p)]["frame_cycles"] * (1 - 1e-12)
-    # The synthetic times follow known costs exactly: the calibration explains them.
-    assert result["calibration"]["self"]["r2"] > 0.999
+        if channels:
+            assert c["frame_cycles"] >= cont[(0, p)]["frame_cycles"] * (1 - 1e-12)
+    # The times are 2% noisy: the calibration explains most of them, not all.
+    assert 0.9 < result["calibration"]["self"]["r2"] < 1
 
 
 def test_hwsim_cli(tmp_path, capsys):
     from mi_partpm.cli import main
     assert main(["hwsim", str(_synthetic_dir(tmp_path)), "--out", str(tmp_path / "r")]) == 0
-    assert "w/o gather" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    header = next(line for line in out.splitlines() if "w/o gather" in line)
+    assert "DRAM MB" in header
+    assert "DRAM MB per frame" in out and "MB from DRAM per frame" in out
     # --check: costs fitted on one workload predict another's measured times.
-    from hwsim.calibrate import synthetic_workloads
-    from hwsim.workload import save_workloads
+    from hwsim.calibrate import check, fit, synthetic_workloads
+    from hwsim.workload import load_workloads, save_workloads
     other = save_workloads(tmp_path / "other", synthetic_workloads(seed=8, queries=200),
                            scene="synthetic seed 8")
     assert main(["hwsim", str(tmp_path / "workloads"), "--check", str(other), "--out",
                  str(tmp_path / "r2")]) == 0
-    assert "predicts synthetic seed 8 with R^2 1.000" in capsys.readouterr().out
+    r2 = check(fit(load_workloads(tmp_path / "workloads")[1]), load_workloads(other)[1])["r2"]
+    assert r2 < 1 and f"predicts synthetic seed 8 with R^2 {r2:.3f}" in capsys.readouterr().out
     cfg = tmp_path / "bad.toml"
     cfg.write_text('[gather]\ntopology = "mesh"\n')
     assert main(["hwsim", str(tmp_path / "workloads"), "--config", str(cfg), "--out",
@@ -283,7 +501,6 @@ def test_hwsim_cli(tmp_path, capsys):
 
 def test_hwsim_never_imports_mitsuba():
     import subprocess
-    import sys
     code = ("import sys, hwsim.config, hwsim.model, hwsim.events, hwsim.networks, hwsim.work, hwsim.collective, "
             "hwsim.report, hwsim.calibrate, "
             "hwsim.workload; bad = [m for m in ('mitsuba', 'drjit', 'mi_partpm') "
@@ -314,3 +531,26 @@ def test_collective_fit_recovers_two_regimes_and_scales_with_tree_steps():
         fit_line([1], [1.0])
     with pytest.raises(ValueError, match="need a micro-benchmark on >= 2 ranks"):
         fit_collective({**bench, "ranks": 1})
+
+
+def main(argv=None) -> int:
+    """``python tests/test_hwsim.py --regenerate-golden``: rewrite the golden report."""
+    import argparse
+    import tempfile
+    parser = argparse.ArgumentParser(description="Regenerate hwsim's golden report on "
+                                     "purpose, when the model is meant to change.")
+    parser.add_argument("--regenerate-golden", action="store_true",
+                        help=f"rewrite {GOLDEN.name} from the current model")
+    args = parser.parse_args(argv)
+    if not args.regenerate_golden:
+        parser.print_help()
+        return 2
+    with tempfile.TemporaryDirectory() as tmp:
+        pinned, _ = _golden_report(Path(tmp))
+    _write_golden(pinned)
+    print(f"wrote {GOLDEN}: review the diff, and commit it saying why the numbers changed")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
