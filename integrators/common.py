@@ -266,12 +266,15 @@ class PhotonMapper(mi.SamplingIntegrator):
 
             def image(done=pass_index + 1):
                 """The image after this pass (developed into the film)."""
-                return camera.develop(emitted / done + _radiance(terms), valid / done)
+                # The pass count is opaque: one kernel serves every checkpoint.
+                scale = dr.rcp(dr.opaque(mi.Float, done))
+                return camera.develop(emitted * scale + _radiance(terms), valid * scale)
             if self._after_pass(pass_index, terms, start, image):
                 break
         self._finish(terms)
         done = max(terms[0].state.passes, 1)
-        return emitted / done + _radiance(terms), valid / done
+        scale = dr.rcp(dr.opaque(mi.Float, done))
+        return emitted * scale + _radiance(terms), valid * scale
 
     def eye_pass(self, scene, sampler, ray, weight, active, emission):
         """Phase 3: the eye paths of ``ray`` (throughput starting at ``weight``) to their

@@ -80,7 +80,7 @@ class VisiblePoints:
             return [self]
         out, start = [], 0
         for size in sizes:
-            index = dr.arange(mi.UInt32, size) + start
+            index = dr.arange(mi.UInt32, size) + dr.opaque(mi.UInt32, start)
             out.append(VisiblePoints(*[dr.gather(type(v), v, index) for v in (
                 self.si, self.bsdf, self.beta, self.lane, self.max_bounce)], parts=(size,)))
             start += size
@@ -108,7 +108,7 @@ def _concat_points(parts) -> VisiblePoints:
     merged = {f: dr.zeros(type(getattr(parts[0], f)), total) for f in fields}
     offset = 0
     for part in parts:
-        slot = dr.arange(mi.UInt32, len(part)) + offset
+        slot = dr.arange(mi.UInt32, len(part)) + dr.opaque(mi.UInt32, offset)
         for f in fields:
             dr.scatter(merged[f], getattr(part, f), slot)
         offset += len(part)

@@ -71,7 +71,7 @@ class SPPMState:
         """tau / (P pi r^2): the photon maps' radiance after the passes so far."""
         if self.passes == 0:
             return dr.zeros(mi.Spectrum, dr.width(self.N))
-        return self.tau * dr.rcp(self.passes * dr.pi * self.r2)
+        return self.tau * dr.rcp(dr.opaque(mi.Float, self.passes * dr.pi) * self.r2)
 
 
 @dataclass
@@ -92,7 +92,7 @@ class RadianceSum:
         dr.eval(self.total)
 
     def radiance(self):
-        return self.total / max(self.passes, 1)
+        return self.total * dr.rcp(dr.opaque(mi.Float, max(self.passes, 1)))
 
 
 def accumulate(points, values, found, width: int):
@@ -108,7 +108,7 @@ def accumulate(points, values, found, width: int):
     for size in points.parts or (len(points),):
         if size == 0:
             continue
-        index = dr.arange(mi.UInt32, size) + start
+        index = dr.arange(mi.UInt32, size) + dr.opaque(mi.UInt32, start)
         lane = dr.gather(mi.UInt32, points.lane, index)
         dr.scatter_add(flux, dr.gather(mi.Spectrum, weighted, index), lane)
         dr.scatter_add(count, mi.Float(dr.gather(type(found), found, index)), lane)

@@ -343,7 +343,7 @@ def _concat(batches, photon_count, map_count) -> Photons:
                                                  batches[0].bounces)]
     offset = 0
     for b in batches:
-        slot = dr.arange(mi.UInt32, len(b)) + offset
+        slot = dr.arange(mi.UInt32, len(b)) + dr.opaque(mi.UInt32, offset)
         for target, a in zip(merged, (b.points, b.code, b.flux, b.maps, b.bounces)):
             dr.scatter(target, a, slot)
         dr.eval(merged)
