@@ -322,7 +322,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         state = terms[0].state
         info = {"pass": done, "passes": self.passes, "elapsed": elapsed, "image": image,
                 "photons": done * self.params.photon_count,
-                "eta": elapsed / done * (self.passes - done),
+                "eta": self._remaining(elapsed, done),
                 "mean_radius": float(dr.mean(dr.sqrt(state.r2))[0])
                 if hasattr(state, "r2") else None}
         stop = self.time_limit > 0 and elapsed >= self.time_limit and done < self.passes
@@ -330,14 +330,24 @@ class PhotonMapper(mi.SamplingIntegrator):
         if self.passes > 1:
             radius = "" if info["mean_radius"] is None else \
                 f", mean radius {info['mean_radius']:.4g}"
-            log.info("pass %d of %d: %d photons so far%s, %.1f s elapsed%s", done,
-                     self.passes, info["photons"], radius, elapsed,
+            of = f"{self.passes}" if not self.time_limit else \
+                f"at most {self.passes} in {self.time_limit:g} s"
+            log.info("pass %d of %s: %d photons so far%s, %.1f s elapsed%s", done, of,
+                     info["photons"], radius, elapsed,
                      ", time limit reached" if stop else f", about {info['eta']:.0f} s left")
         if self.on_pass is not None:
             t0 = time.perf_counter()
             self.on_pass(info)
             self._paused += time.perf_counter() - t0
         return stop
+
+    def _remaining(self, elapsed: float, done: int) -> float:
+        """Seconds left: the passes to go at the mean pass time so far, or less where the
+        time limit ends the render first (it stops after the pass that reaches it)."""
+        left = elapsed / done * (self.passes - done)
+        if self.time_limit > 0:
+            left = min(left, max(self.time_limit - elapsed, 0.0) + elapsed / done)
+        return left
 
     # ------------------------------------------------------------------ per sample
 

@@ -105,6 +105,40 @@ class PartPMIntegrator(PhotonMapper):
        * - hide_emitters
          - |bool|
          - Emitters seen directly by the camera are black. (Default: false)
+       * - kernel
+         - |string|
+         - Density kernel over the search disc: ``box`` (the paper's eq. 2), ``simpson``
+           (3 (1 - d^2/r^2)^2, Mitsuba 0.6's), ``epanechnikov`` (2 (1 - d^2/r^2)) or ``cone``
+           (3 (1 - d/r)); each integrates to pi r^2, so a uniform photon density gives the
+           same radiance with every kernel, and eq. (2) holds for each. (Default: box)
+       * - caustic_photon_count
+         - |int|
+         - Photons per pass for a caustic map, 0 (off) or >= map_count: they are traced
+           apart, and only those that reach their first non-delta surface through one or
+           more mirror or glass bounces (L S+ D) are stored, in their own map_count
+           partitioned maps, read with their own radius; the global maps then keep every
+           other photon, so nothing is counted twice. (Default: 0)
+       * - caustic_radius, caustic_radius_fraction
+         - |float|
+         - The caustic maps' (initial) radius in world units, or as a fraction of the scene's
+           longest side, in (0, 1]; one of the two. (Default: a quarter of the global radius)
+       * - glossy
+         - |string|
+         - ``map``: every surface with a non-delta lobe takes its estimate from the maps;
+           ``trace``: at a surface whose lobes are all glossy or delta, the eye path goes on
+           by BSDF sampling (direct light there by emitter sampling, MIS-weighted as in
+           ``path``) and the estimate is taken at the next surface with a diffuse lobe.
+           (Default: map)
+       * - glossy_samples
+         - |int|
+         - With glossy = trace, the rays traced from an eye path's first glossy surface,
+           >= 1. (Default: 1)
+       * - final_gather
+         - |int|
+         - Rays of a final gather at every visible point, >= 0; 0 is off. With n > 0 (needs
+           direct = nee) the global maps are read only where those BSDF-sampled rays land,
+           caustics come from the caustic maps (or, without them, from the gather rays that
+           reach an emitter through mirrors and glass): Jensen's two-pass method. (Default: 0)
        * - backend
          - |string|
          - ``local``: all maps in this process; ``mpi``: inside ``mpiexec -n P``, rank j

@@ -28,6 +28,22 @@ from mi_partpm.trace import map_seeds, map_sizes
     ({"rr_depth": 0}, r"rr_depth must be an integer >= 1, got 0"),
     ({"direct": "both"}, r"direct must be one of 'photons', 'nee', got 'both'"),
     ({"hide_emitters": 1}, r"hide_emitters.*(must be true or false|expected boolean)"),
+    ({"passes": 0}, r"passes must be an integer >= 1, got 0"),
+    ({"alpha": 1.0}, r"alpha must be a finite number in \(0.0, 1.0\), got 1.0"),
+    ({"alpha": 0.0}, r"alpha must be .* got 0.0"),
+    ({"time_limit": -1.0}, r"time_limit must be a finite number in \[0.0, inf\), got -1.0"),
+    ({"kernel": "gauss"}, r"kernel must be one of 'box', 'simpson', 'epanechnikov', 'cone', "
+                          r"got 'gauss'"),
+    ({"caustic_photon_count": -1}, r"caustic_photon_count must be an integer >= 0, got -1"),
+    ({"map_count": 8, "caustic_photon_count": 3},
+     r"caustic_photon_count must be 0 \(off\) or in \[map_count = 8, ...\), got 3"),
+    ({"caustic_radius": 0.1, "caustic_radius_fraction": 0.1},
+     r"either caustic_radius or caustic_radius_fraction"),
+    ({"caustic_radius_fraction": 2.0}, r"caustic_radius_fraction must be .* got 2.0"),
+    ({"glossy": "blur"}, r"glossy must be one of 'map', 'trace', got 'blur'"),
+    ({"glossy_samples": 0}, r"glossy_samples must be an integer >= 1, got 0"),
+    ({"final_gather": -2}, r"final_gather must be an integer >= 0, got -2"),
+    ({"final_gather": 4}, r"final_gather = 4 needs direct = 'nee'"),
 ])
 def test_bad_props_raise_clear_errors(props, message):
     with pytest.raises(Exception, match=message):
@@ -95,3 +111,39 @@ def test_cli_scene_without_emitter(tmp_path, capsys):
     xml.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
     assert main(["render", str(xml), "-o", str(tmp_path / "d.exr")]) == 2
     assert "no emitter" in capsys.readouterr().err
+
+
+def test_cli_quality_options_reach_the_integrator(tmp_path):
+    """--kernel, --caustic-photons, --caustic-radius-fraction, --glossy, --glossy-samples and
+    --final-gather become the plugin's props, and a render with them traces the caustic maps
+    (their photons and radius are in the figures written by --stats-json)."""
+    import json
+    from mi_partpm.cli.parser import build_parser
+    from mi_partpm.cli.render import integrator_desc
+    out, stats = tmp_path / "q.exr", tmp_path / "q.json"
+    argv = ["render", "cornell_box", "--maps", "2", "--photons", "4000", "--resolution",
+            "12x12", "--spp", "1", "--direct", "nee", "--kernel", "simpson",
+            "--caustic-photons", "4000", "--caustic-radius-fraction", "0.01",
+            "--glossy", "trace", "--glossy-samples", "2", "--final-gather", "2",
+            "--stats-json", str(stats), "-o", str(out)]
+    desc = integrator_desc(build_parser().parse_args(argv))
+    assert {k: desc[k] for k in ("kernel", "caustic_photon_count", "caustic_radius_fraction",
+                                 "glossy", "glossy_samples", "final_gather")} == {
+        "kernel": "simpson", "caustic_photon_count": 4000, "caustic_radius_fraction": 0.01,
+        "glossy": "trace", "glossy_samples": 2, "final_gather": 2}
+    assert main(argv) == 0
+    figures = json.loads(stats.read_text())
+    assert figures["caustic_photons_stored"] > 0
+    assert figures["caustic_radius"] == pytest.approx(0.01 * figures["radius"] / 0.05,
+                                                      rel=1e-5)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--integrator", "pm", "--final-gather", "4"], "--final-gather apply to --integrator "
+                                                    "partpm only"),
+    (["--integrator", "path", "--kernel", "cone"], "--kernel, --glossy and --glossy-samples "
+                                                   "apply to the photon mappers"),
+])
+def test_cli_quality_options_name_the_integrators_they_apply_to(argv, message, capsys):
+    assert main(["render", "cornell_box", *argv, "-o", "x.exr"]) == 2
+    assert message in capsys.readouterr().err

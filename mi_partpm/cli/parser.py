@@ -75,12 +75,38 @@ def _render_options(sub):
                    help="stop after the pass during which this many seconds have passed")
     r.add_argument("--checkpoint-every", type=positive_int("--checkpoint-every"), metavar="K",
                    help="write the image so far every K passes")
+    _quality_options(r)
     r.add_argument("--backend", choices=("local", "mpi"), default="local",
                    help="where the maps run: this process, or the ranks of an MPI job "
                         "(mpiexec -n P partpm render ... --backend mpi)")
     r.add_argument("--stats-json", metavar="FILE",
                    help="also write the run's figures (per rank with --backend mpi) as JSON")
     r.add_argument("-o", "--output", help="output EXR file (a PNG is written beside it)")
+
+
+def _quality_options(r):
+    """The estimator's options beyond the paper (see the partpm plugin's docstring)."""
+    from ..props import GLOSSY_MODES, KERNEL_NAMES
+    r.add_argument("--kernel", choices=KERNEL_NAMES,
+                   help="density kernel over the search disc (default box, the paper's)")
+    r.add_argument("--caustic-photons", type=positive_int("--caustic-photons"),
+                   help="photons per pass for caustic maps of their own (partpm; default: "
+                        "none)")
+    g = r.add_mutually_exclusive_group()
+    g.add_argument("--caustic-radius", type=positive_float("--caustic-radius"),
+                   help="the caustic maps' radius in world units")
+    g.add_argument("--caustic-radius-fraction",
+                   type=positive_float("--caustic-radius-fraction", 1.0),
+                   help="the caustic maps' radius over the scene's longest side (default: a "
+                        "quarter of the global radius)")
+    r.add_argument("--glossy", choices=GLOSSY_MODES,
+                   help="at glossy surfaces: estimate from the map there (default), or trace "
+                        "on by BSDF sampling")
+    r.add_argument("--glossy-samples", type=positive_int("--glossy-samples"),
+                   help="rays traced from an eye path's first glossy surface (with --glossy "
+                        "trace)")
+    r.add_argument("--final-gather", type=positive_int("--final-gather"), metavar="RAYS",
+                   help="final gather rays per visible point (partpm, needs --direct nee)")
 
 
 def _experiment_options(sub):

@@ -29,6 +29,20 @@ def integrator_desc(args) -> dict:
     if progressive and args.integrator != "partpm":
         raise UsageError(f"{', '.join(progressive)} apply to --integrator partpm only (the "
                          f"progressive photon mapper)")
+    if args.integrator != "path":
+        for key, value in (("kernel", args.kernel), ("glossy", args.glossy),
+                           ("glossy_samples", args.glossy_samples)):
+            if value is not None:
+                desc[key] = value
+    elif any(v is not None for v in (args.kernel, args.glossy, args.glossy_samples)):
+        raise UsageError("--kernel, --glossy and --glossy-samples apply to the photon mappers "
+                         "(--integrator partpm or pm)")
+    partpm_only = [o for o, v in (("--caustic-photons", args.caustic_photons),
+                                  ("--caustic-radius", args.caustic_radius),
+                                  ("--caustic-radius-fraction", args.caustic_radius_fraction),
+                                  ("--final-gather", args.final_gather)) if v]
+    if partpm_only and args.integrator != "partpm":
+        raise UsageError(f"{', '.join(partpm_only)} apply to --integrator partpm only")
     if args.integrator == "pm":
         unused = [o for o, v in (("--maps", args.maps), ("--radius", args.radius),
                                  ("--radius-fraction", args.radius_fraction)) if v]
@@ -46,6 +60,12 @@ def integrator_desc(args) -> dict:
         desc["backend"] = args.backend
         for key, value in (("passes", args.passes), ("alpha", args.alpha),
                            ("time_limit", args.time)):
+            if value is not None:
+                desc[key] = value
+        for key, value in (("caustic_photon_count", args.caustic_photons),
+                           ("caustic_radius", args.caustic_radius),
+                           ("caustic_radius_fraction", args.caustic_radius_fraction),
+                           ("final_gather", args.final_gather)):
             if value is not None:
                 desc[key] = value
         if args.radius is not None:
