@@ -1,13 +1,35 @@
 """The notebooks run from top to bottom (at the smoke size) and draw their figures."""
+import importlib
+import importlib.util
+import json
 import os
+import sys
 from pathlib import Path
 
 import pytest
 
-nbformat = pytest.importorskip("nbformat")   # in the test extras; importorskip names it
-from nbclient import NotebookClient            # noqa: E402
-
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
+
+#: What executing a notebook needs; all are in the test extras, so a missing one is a broken
+#: environment and fails the test (a skip would pass a run that never executed a notebook).
+TOOLS = ("nbformat", "nbclient", "ipykernel")
+
+
+def _tools():
+    """The nbformat and nbclient modules; fails, naming what to install, when any of
+    :data:`TOOLS` is missing."""
+    missing = [name for name in TOOLS if importlib.util.find_spec(name) is None]
+    if missing:
+        pytest.fail(f"the notebook tests need {', '.join(missing)}, which the test extras "
+                    f"install: pip install -e '.[test]'", pytrace=False)
+    return importlib.import_module("nbformat"), importlib.import_module("nbclient")
+
+
+def test_a_missing_notebook_tool_fails_and_says_what_to_install(monkeypatch):
+    monkeypatch.setattr(sys.modules[__name__], "TOOLS", TOOLS + ("no_such_module_here",))
+    with pytest.raises(pytest.fail.Exception, match=r"need no_such_module_here, .*"
+                                                    r"pip install -e '\.\[test\]'"):
+        _tools()
 
 
 @pytest.fixture(scope="module")
@@ -23,11 +45,12 @@ def test_notebook_runs_and_draws(name, smoke_out, monkeypatch):
     monkeypatch.setenv("PARTPM_NOTEBOOK_OUT", str(smoke_out))
     if os.environ.get("PARTPM_DATA"):    # the kernel runs in notebooks/: make it absolute
         monkeypatch.setenv("PARTPM_DATA", str(Path(os.environ["PARTPM_DATA"]).resolve()))
+    nbformat, nbclient = _tools()
     notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
     for cell in notebook.cells:          # run what is committed, not its stored outputs
         if cell.cell_type == "code":
             cell.outputs = []
-    client = NotebookClient(notebook, timeout=600, kernel_name="python3",
+    client = nbclient.NotebookClient(notebook, timeout=600, kernel_name="python3",
                             resources={"metadata": {"path": str(NOTEBOOKS)}})
     client.execute()                     # raises CellExecutionError with the cell's traceback
     outputs = [o for c in notebook.cells if c.cell_type == "code" for o in c.outputs]
@@ -36,3 +59,71 @@ def test_notebook_runs_and_draws(name, smoke_out, monkeypatch):
     assert images, f"{name} drew no figure"
     text = "".join(o.get("text", "") for o in outputs)
     assert "size: smoke" in text
+
+
+def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkeypatch):
+    """The notebooks read a finished run back only when its settings and its code version
+    are the current ones; with another code version (or none recorded) they run it again
+    and say so. The experiments are replaced by stand-ins that count their runs and write
+    what the real ones write (the comparison's metrics.json records no code version, so the
+    notebook helper records it beside; speedup.json records its own)."""
+    from dataclasses import asdict
+
+    from mi_partpm.experiments import compare, notebook, speedup
+    monkeypatch.setenv("PARTPM_NOTEBOOK_SIZE", "smoke")
+    monkeypatch.setenv("PARTPM_NOTEBOOK_OUT", str(tmp_path))
+    runs = []
+
+    def fake_compare(settings, out, progress=print):
+        runs.append("compare")
+        result = {"settings": {**asdict(settings), "resolution": list(settings.resolution),
+                               "k": 10}, "metrics": {}}
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "metrics.json").write_text(json.dumps(result))
+        return result
+
+    def fake_speedup(scene, maps, out, photons, resolution, spp, repeats, progress=print):
+        runs.append("speedup")
+        result = {"photons_emitted": photons, "resolution": list(resolution), "spp": spp,
+                  "repeats": repeats, "rows": [{"n": n} for n in maps],
+                  "code": notebook.code_version()}
+        (out / "workloads").mkdir(parents=True, exist_ok=True)
+        (out / "workloads" / "meta.json").write_text("{}")
+        (out / "speedup.json").write_text(json.dumps(result))
+        return result
+    monkeypatch.setattr(compare, "run_compare", fake_compare)
+    monkeypatch.setattr(speedup, "run_speedup", fake_speedup)
+    code = {"now": notebook.code_version()}
+    monkeypatch.setattr(notebook, "code_version", lambda: code["now"])
+    said = []
+    for helper, kind in ((notebook.compare, "compare"), (notebook.speedup, "speedup")):
+        code["now"] = "0123456789abcdef"
+        helper("cornell_box", progress=said.append)
+        helper("cornell_box", progress=said.append)          # same code: reused
+        assert runs.count(kind) == 1 and "reusing" in said[-1], said
+        code["now"] = "fedcba9876543210"
+        helper("cornell_box", progress=said.append)          # other code: run again
+        assert runs.count(kind) == 2, said
+        assert said[-1].endswith("was made by code 0123456789abcdef, this is code "
+                                 "fedcba9876543210: running again"), said[-1]
+        helper("cornell_box", progress=said.append)          # the new run is reused
+        assert runs.count(kind) == 2 and "reusing" in said[-1], said
+    # Other settings: run again.
+    monkeypatch.setitem(notebook.SIZES["smoke"], "compare",
+                        {**notebook.SIZES["smoke"]["compare"], "photons": 20_000})
+    notebook.compare("cornell_box", progress=said.append)
+    assert runs.count("compare") == 3 and said[-1].endswith("has other settings: running "
+                                                            "again"), said[-1]
+    # A result file without a code version, and none recorded beside it: run again.
+    done = tmp_path / "smoke" / "speedup_cornell_box" / "speedup.json"
+    result = json.loads(done.read_text())
+    del result["code"]
+    done.write_text(json.dumps(result))
+    notebook.speedup("cornell_box", progress=said.append)
+    assert runs.count("speedup") == 3 and "code of unknown version" in said[-1], said
+    # A metrics.json rewritten after its code version was recorded (e.g. by the CLI): the
+    # record does not describe it, so it is run again.
+    metrics = tmp_path / "smoke" / "compare_cornell_box" / "metrics.json"
+    metrics.write_text(metrics.read_text() + " ")
+    notebook.compare("cornell_box", progress=said.append)
+    assert runs.count("compare") == 4 and "code of unknown version" in said[-1], said

@@ -8,17 +8,32 @@ variable ``PARTPM_NOTEBOOK_SIZE``:
 - ``smoke``: tiny images and photon counts, so that the test suite can execute every notebook.
 
 Results go to ``$PARTPM_NOTEBOOK_OUT`` (default ``../out``, beside the notebooks, which is where
-the CLI examples of the README write). A finished run whose recorded settings equal the ones
-asked for is read back instead of being run again: delete its directory to recompute.
+the CLI examples of the README write). A finished run is read back instead of being run again
+only when its recorded settings equal the ones asked for AND it was made by the current code
+(:func:`~mi_partpm.experiments.provenance.code_version`, a hash of the sources); otherwise it
+is run again, and the progress line says why. Delete a run's directory to recompute it anyway.
+
+``speedup.json`` records its code version itself. ``metrics.json`` of the comparison does not,
+so the comparison's code version is recorded beside it, in :data:`CODE_FILE`, together with a
+hash of the ``metrics.json`` it belongs to (a ``metrics.json`` written later by the CLI, by
+whatever code, does not match it and is recomputed).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import asdict
 from pathlib import Path
 
-__all__ = ["SIZES", "size", "out_dir", "compare", "speedup", "hwsim_report", "show"]
+from .provenance import code_version
+
+__all__ = ["SIZES", "size", "out_dir", "compare", "speedup", "hwsim_report", "show",
+           "CODE_FILE"]
+
+#: Beside a run whose result file does not record its code version: that version and the
+#: SHA-256 of the result file it describes.
+CODE_FILE = "code_version.json"
 
 SIZES = {
     "paper": {"compare": {"resolution": (480, 480), "spp": 4, "photons": 100_000, "maps": 8,
@@ -53,6 +68,51 @@ def _same(recorded: dict, wanted: dict) -> bool:
                for k, v in wanted.items())
 
 
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _record_code(done: Path, code: str):
+    """Write :data:`CODE_FILE` beside ``done``: ``code`` made exactly this file."""
+    (done.parent / CODE_FILE).write_text(json.dumps(
+        {"code": code, "file": done.name, "sha256": _sha256(done)}, indent=2) + "\n")
+
+
+def _recorded_code(done: Path, result: dict):
+    """The code version that made ``done``: its own ``code`` field, else :data:`CODE_FILE`'s
+    when that describes this very file; None when neither says."""
+    if result.get("code"):
+        return result["code"]
+    side = done.parent / CODE_FILE
+    try:
+        info = json.loads(side.read_text())
+    except (OSError, ValueError):
+        return None
+    if info.get("file") == done.name and info.get("sha256") == _sha256(done):
+        return info.get("code")
+    return None
+
+
+def _reusable(done: Path, what: str, matches, progress) -> dict | None:
+    """The result in ``done`` when ``matches(result)`` (its settings) and its code version is
+    the current one; otherwise None, after a progress line saying why it is run again."""
+    progress = progress or (lambda *a: None)
+    if not done.is_file():
+        return None
+    result = json.loads(done.read_text())
+    if not matches(result):
+        progress(f"{what}: {done} has other settings: running again")
+        return None
+    current, recorded = code_version(), _recorded_code(done, result)
+    if recorded != current:
+        made_by = f"code {recorded}" if recorded else "code of unknown version"
+        progress(f"{what}: {done} was made by {made_by}, this is code {current}: "
+                 f"running again")
+        return None
+    progress(f"{what}: reusing {done} (code {current})")
+    return result
+
+
 def compare(scene: str, progress=print) -> dict:
     """pm vs partpm vs path on ``scene`` (``metrics.json`` of :func:`run_compare`)."""
     from .compare import CompareSettings, run_compare
@@ -60,13 +120,12 @@ def compare(scene: str, progress=print) -> dict:
     out = out_dir(f"compare_{scene}")
     done = out / "metrics.json"
     wanted = {k: v for k, v in asdict(settings).items() if k not in ("k", "data_dir")}
-    if done.is_file():
-        result = json.loads(done.read_text())
-        if _same(result["settings"], wanted):
-            progress(f"{scene}: reusing {done}")
-            result["out"] = str(out)
-            return result
-    result = run_compare(settings, out, progress=progress)
+    result = _reusable(done, scene, lambda r: _same(r["settings"], wanted), progress)
+    if result is None:
+        code = code_version()
+        result = run_compare(settings, out, progress=progress)
+        if not result.get("code"):
+            _record_code(done, code)
     result["out"] = str(out)
     return result
 
@@ -77,17 +136,17 @@ def speedup(scene: str, progress=print) -> dict:
     s = SIZES[size()]["speedup"]
     out = out_dir(f"speedup_{scene}")
     done = out / "speedup.json"
-    if done.is_file() and (out / "workloads" / "meta.json").is_file():
-        result = json.loads(done.read_text())
-        if _same(result, {"photons_emitted": s["photons"], "resolution": s["resolution"],
-                          "spp": s["spp"], "repeats": s["repeats"]}) and \
-                [r["n"] for r in result["rows"]] == list(s["maps"]):
-            progress(f"{scene}: reusing {done}")
-            result["out"] = str(out)
-            return result
-    result = run_speedup(scene, s["maps"], out, photons=s["photons"],
-                         resolution=s["resolution"], spp=s["spp"], repeats=s["repeats"],
-                         progress=progress)
+
+    def matches(result):
+        return (out / "workloads" / "meta.json").is_file() and _same(
+            result, {"photons_emitted": s["photons"], "resolution": s["resolution"],
+                     "spp": s["spp"], "repeats": s["repeats"]}) and \
+            [r["n"] for r in result["rows"]] == list(s["maps"])
+    result = _reusable(done, scene, matches, progress)
+    if result is None:
+        result = run_speedup(scene, s["maps"], out, photons=s["photons"],
+                             resolution=s["resolution"], spp=s["spp"], repeats=s["repeats"],
+                             progress=progress)
     result["out"] = str(out)
     return result
 

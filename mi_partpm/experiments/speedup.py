@@ -10,7 +10,10 @@ in ``hwsim/WORKLOAD.md``).
 The same photons serve every n: they are traced once into L = lcm(n values) streams, and map j
 of n holds the streams i with i mod n = j, so every map still holds its own N/n emissions
 while the total work is identical across n; the per-map estimates of each n must add up to
-the n = 1 estimate (eq. 2), which the run checks.
+the n = 1 estimate (eq. 2), which the run checks: a run whose sum at some hit point is off by
+more than float32 rounding can explain (:func:`gather_bound`) stops with a
+:class:`GatherError` rather than record a workload that is not the one-map workload split n
+ways.
 
 :func:`run_speedup` is three phases: :func:`_setup` (scene, photons, hit points),
 :func:`_measure` per n (times, counts, the gather's error) and the report (CSV, JSON, plot,
@@ -31,6 +34,7 @@ import mitsuba as mi
 import numpy as np
 
 from hwsim.workload import MapWorkloads, save_workloads
+from .provenance import code_version
 from ..estimate import radiance_estimate
 from ..eyepath import first_hits
 from ..kdtree import LEAF_SIZE, NODE_BYTES
@@ -39,14 +43,79 @@ from ..scenes import load_scene
 from ..timing import timed
 from ..trace import trace_photons
 
-__all__ = ["run_speedup", "format_speedup", "plot_speedup"]
+__all__ = ["run_speedup", "format_speedup", "plot_speedup", "gather_bound", "gather_excess",
+           "GatherError"]
 
 log = logging.getLogger("mi_partpm")
+
+#: float32's unit roundoff: a sum or product of float32 values is off by at most this share.
+FLOAT32_ROUNDOFF = 2.0 ** -24
+
+
+class GatherError(RuntimeError):
+    """The measured estimates are not the workload the experiment stands for: the per-map
+    estimates of some n do not add up to the one-map estimate (eq. 2), or the one-map
+    estimate is 0 at every hit point although its queries found photons."""
+
+
+def gather_bound(reference, found):
+    """How far the sum of a hit point's n per-map estimates may lie from its one-map
+    estimate ``reference`` (Q, 3) by float32 rounding alone, with ``found`` (Q,) photons
+    within r of it: (2 m + 4) 2^-24 |reference| for m photons.
+
+    Both sides sum the same positive contributions f_r * dPhi_p in float32, in another order
+    (one tree, or n trees then float64 over the maps), and multiply by the same f_r and
+    1 / (pi r^2): a float32 sum of m positive terms is off by at most (m - 1) 2^-24 of itself,
+    each product by 2^-24, so the two differ by at most (2 m + 2) 2^-24 of the estimate, to
+    first order; 4 leaves room for the second. A photon lost or counted twice changes a
+    hit point by about 1 / m of it, more than the bound while m < 2900 (a few hundred photons
+    are found at the paper's size, a few thousand in a caustic, where the bound loosens).
+    Measured at the paper's 10^5 photons, n = 2 - 32: 0.09 - 0.11 of the bound at the worst
+    hit point, on the Cornell box and on the Happy Buddha."""
+    found = np.asarray(found, np.float64).reshape(-1, 1)
+    return (2.0 * found + 4.0) * FLOAT32_ROUNDOFF * np.abs(np.asarray(reference, np.float64))
+
+
+def gather_excess(gathered, reference, found):
+    """The largest |gathered - reference| / :func:`gather_bound` over the hit points and
+    colour channels (at most 1 when float32 rounding explains the difference; infinite where
+    an estimate is not 0 but the reference is), and the hit point where it is (-1 when the
+    two agree exactly)."""
+    gathered, reference = np.asarray(gathered, np.float64), np.asarray(reference, np.float64)
+    diff = np.abs(gathered - reference)
+    if not diff.size or not diff.any():
+        return 0.0, -1
+    bound = gather_bound(reference, found)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(diff > 0, diff / bound, 0.0)
+    worst = int(np.argmax(share.max(axis=1)))
+    return float(share[worst].max()), worst
+
+
+def _check_gather(n: int, reference_n: int, gathered, reference, found):
+    """Raise a :class:`GatherError` unless the n per-map estimates of every hit point add
+    up to its n = ``reference_n`` estimate within :func:`gather_bound`; return the largest
+    share of the bound."""
+    share, i = gather_excess(gathered, reference, found)
+    if share <= 1.0:
+        return share
+    m, ref, got = int(found[i]), reference[i], gathered[i]
+    rel = np.abs(got - ref).max() / max(np.abs(ref).max(), 1e-300)
+    tolerance = (2 * m + 4) * FLOAT32_ROUNDOFF
+    raise GatherError(
+        f"eq. (2) fails at n = {n}: at hit point {i}, with {m} photons within r, the {n} "
+        f"per-map estimates add up to {np.array2string(got, precision=6)} against the "
+        f"n = {reference_n} estimate {np.array2string(ref, precision=6)}: {rel:.3g} "
+        f"relative, {share:.3g} times the tolerance (2 m + 4) 2^-24 = {tolerance:.3g} that "
+        f"float32 rounding can explain. The maps of n = {n} do not hold the same photons, or "
+        f"an estimate counts photons it should not. Stopped before writing results or "
+        f"workloads.")
 
 
 @dataclass
 class _Setup:
     scene_name: str
+    scene: object        # kept alive: the hit points' BSDF pointers point into it
     photons: int
     traced: object       # Photons, traced once into lcm streams
     si: object           # the hit points (first non-delta hits, Morton order)
@@ -80,7 +149,7 @@ def _setup(scene_name, photons, streams, resolution, spp, radius_fraction, seed,
     say(f"tracing {photons} photons into {streams} streams ...")
     traced = trace_photons(scene, photons, streams, seed)
     si, bsdf, _ = first_hits(scene, spp, seed)
-    setup = _Setup(scene_name, photons, traced, si, bsdf, radius,
+    setup = _Setup(scene_name, scene, photons, traced, si, bsdf, radius,
                    dr.full(mi.Bool, True, dr.width(si.p)))
     say(f"{len(traced)} photons stored; {setup.queries} hit points; r = {radius:.4g}")
     return setup
@@ -113,7 +182,7 @@ def _measure(s: _Setup, n: int, repeats: int):
     return maps, times, counts, gathered
 
 
-def _row(n, maps, times, counts, gather_error) -> dict:
+def _row(n, maps, times, counts, max_rel_error, rounding_share) -> dict:
     sizes = maps.map_bytes
     return {
         "n": n, "per_map_seconds": float(np.median(times)),
@@ -125,7 +194,8 @@ def _row(n, maps, times, counts, gather_error) -> dict:
         "photons_per_map": float(maps.forest.photon_count.mean()),
         "tree_depth": int(max(maps.forest.depth(m) for m in range(n))),
         "map_bytes_mean": float(sizes.mean()),
-        "gather_max_rel_error": gather_error,
+        "gather_max_rel_error": max_rel_error,
+        "gather_rounding_share": rounding_share,
     }
 
 
@@ -141,12 +211,22 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
     out.mkdir(parents=True, exist_ok=True)
     s = _setup(scene_name, photons, lcm, resolution, spp, radius_fraction, seed, data_dir, say)
 
+    code = code_version()
     rows, loads, reference = [], {}, None
     for n in maps_list:
         maps, times, counts, gathered = _measure(s, n, repeats)
-        reference = gathered if reference is None else reference
+        if reference is None:
+            reference = gathered
+            if counts[2].any() and not np.any(reference):
+                raise GatherError(
+                    f"the n = {n} estimate is 0 at every hit point although its queries "
+                    f"found {int(counts[2].sum())} photons: the hit points' BSDFs or the "
+                    f"photons' powers are not what they should be. Stopped before writing "
+                    f"results or workloads.")
         scale = np.maximum(np.abs(reference).max(), 1e-12)
-        row = _row(n, maps, times, counts, float(np.abs(gathered - reference).max() / scale))
+        share = _check_gather(n, maps_list[0], gathered, reference, counts[2].sum(axis=0))
+        row = _row(n, maps, times, counts, float(np.abs(gathered - reference).max() / scale),
+                   share)
         rows.append(row)
         say(f"n = {n:4d}: one map {row['per_map_seconds'] * 1e3:8.1f} ms, all {n} maps "
             f"{row['total_seconds']:6.2f} s; per query: {row['mean_nodes_visited']:.1f} nodes, "
@@ -161,7 +241,7 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
     result = {"scene": scene_name, "photons_emitted": photons,
               "photons_stored": len(s.traced), "resolution": list(resolution), "spp": spp,
               "queries": int(s.queries), "radius": s.radius, "repeats": repeats,
-              "streams": lcm, "rows": rows}
+              "streams": lcm, "code": code, "rows": rows}
     _write(out, result, rows)
     if save_workload_files:
         save_workloads(out / "workloads", loads, scene=scene_name, radius=s.radius,
