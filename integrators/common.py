@@ -94,6 +94,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         super().__init__(props if props is not None else mi.Properties())
         self.radius = None
         self._layers = []
+        self._stored_per_emitted = {}
+        self.maps_per_wave, self.wave_bytes, self.wave_index = 0, None, 0
         self._pass_seed = 0
         self.stats = {}
         self.passes, self.alpha, self.time_limit = 1, 0.7, 0.0
@@ -131,10 +133,10 @@ class PhotonMapper(mi.SamplingIntegrator):
     # ------------------------------------------------------------------ phases
 
     def build_maps(self, scene: mi.Scene, layer: Layer = None, sensor=0, spp: int = 0,
-                   render_seed: int = 0, pass_index: int = 0):
-        """Phases 1 and 2 for one layer (default: the first, the global maps): trace every
-        owned map's photons and build its kd-tree; ``layer.maps`` holds them until the next
-        pass, and they are returned.
+                   render_seed: int = 0, pass_index: int = 0, maps=None):
+        """Phases 1 and 2 for one layer (default: the first, the global maps): trace the
+        photons of ``maps`` (default: every map this process owns) and build their kd-trees;
+        ``layer.maps`` holds them until the next wave, and they are returned.
 
         ``sensor`` and ``spp`` (0: the sensor's sampler's) size the eye pass for the memory
         guard; ``render_seed`` and ``pass_index`` select the photon streams with the ``seed``
@@ -147,28 +149,29 @@ class PhotonMapper(mi.SamplingIntegrator):
             self._layers = self.layers()
             layer = self._layers[0]
         owned = self.backend.owned_maps(self.map_count)
-        traced_here = int(map_sizes(layer.photon_count, self.map_count)[owned].sum())
+        maps = owned if maps is None else np.asarray(maps, dtype=np.int64)
+        traced_here = int(map_sizes(layer.photon_count, self.map_count)[maps].sum())
         bounded = p.max_depth != UNLIMITED_DEPTH
-        # Photon paths leave one segment at least for the eye path.
-        photon_depth = p.max_depth - 1 if bounded else UNLIMITED_DEPTH
-        guard = self._memory_guard(scene, sensor, spp, photon_depth, layer, pass_index)
+        guard = self._tracing_guard(scene, sensor, spp, maps)
         clock = Stopwatch()
-        layer.maps = None           # the last pass's maps are freed before the next are traced
+        layer.maps = None           # the last wave's maps are freed before the next are traced
         photons = trace_photons(scene, layer.photon_count, self.map_count,
                                 stream_seed(p.seed ^ layer.salt, render_seed, pass_index),
-                                photon_depth, p.rr_depth, maps=owned,
+                                self._photon_depth(), p.rr_depth, maps=maps,
                                 min_bounce=self.min_bounce(), paths=layer.paths,
                                 progress=lambda line: log.debug("trace: %s", line),
                                 memory_check=guard)
-        # The owned maps become this process's maps 0 .. len(owned)-1.
-        local_of = np.searchsorted(owned, np.arange(self.map_count)).astype(np.uint32)
+        # The wave's maps become this process's maps 0 .. len(maps)-1.
+        local_of = np.searchsorted(maps, np.arange(self.map_count)).astype(np.uint32)
         photons = photons.with_maps(dr.gather(mi.UInt32, mi.UInt32(local_of), photons.maps),
-                                    len(owned))
+                                    len(maps))
         t_trace = clock.lap()
         layer.maps = build_photon_maps(photons, keep_bounce=bounded)
         layer.stored, segments = len(photons), photons.segments
         del photons
         t_build = clock.lap()
+        if traced_here:
+            self._stored_per_emitted[layer.name] = layer.stored / traced_here
         prefix = "" if layer.name == "global" else f"{layer.name}_"
         self._add_stats(time_trace=t_trace, time_build=t_build, segments=segments,
                         **{f"{prefix}photons_stored": layer.stored,
@@ -177,30 +180,61 @@ class PhotonMapper(mi.SamplingIntegrator):
                           maps_owned=owned.tolist())
         return layer.maps
 
+    def _photon_depth(self) -> int:
+        """The longest photon path: ``max_depth`` - 1, which leaves one segment at least for
+        the eye path."""
+        d = self.params.max_depth
+        return d - 1 if d != UNLIMITED_DEPTH else UNLIMITED_DEPTH
+
     def min_bounce(self) -> int:
         """The fewest segments a stored photon has: 2 when direct light is sampled."""
         return 2 if self.params.direct == "nee" else 1
 
-    def _memory_guard(self, scene, sensor, spp, photon_depth, layer, pass_index):
-        """Check the render fits before the first pass; return the check to repeat while
-        tracing (with the measured photons stored per photon emitted)."""
+    def _eye_size(self, scene, sensor, spp):
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         film = sensor.film().crop_size()
-        spp = int(spp) or sensor.sampler().sample_count()
-        traced = sum(int(map_sizes(l.photon_count, self.map_count)[
-            self.backend.owned_maps(self.map_count)].sum()) for l in self._layers)
+        return int(film[0]), int(film[1]), int(spp) or sensor.sampler().sample_count()
 
-        def estimate(ratio=None):
-            return memory.estimate_render(traced, photon_depth, int(film[0]), int(film[1]),
-                                          spp, ratio)
-        what = f"photon_count = {self.params.photon_count}"
-        if pass_index == 0 and layer is self._layers[0]:
-            # Before any photon is traced: the estimate from the props and the film.
-            memory.check_fits(estimate(), what)
+    def _emitted_per_map(self, layers=None) -> np.ndarray:
+        """Photons emitted per map, over every layer (the global and caustic maps of one
+        index are traced in the same wave)."""
+        layers = self._layers if layers is None else layers
+        return sum(map_sizes(l.photon_count, self.map_count) for l in layers)
+
+    def _stored_ratio(self):
+        """Photons stored per emitted, as measured so far (None before the first wave)."""
+        seen = list(self._stored_per_emitted.values())
+        return max(seen) if seen else None
+
+    def plan_waves(self, scene, sensor=0, spp: int = 0) -> list:
+        """The waves of this process's maps (lists of map indices) for the next pass: the
+        memory guard. Raises :class:`~mi_partpm.memory.MemoryGuardError` before any photon is
+        traced when even one map per wave would not fit."""
+        owned = self.backend.owned_maps(self.map_count)
+        if not self._layers:
+            self._layers = self.layers()
+        sizes = self._emitted_per_map()[owned]
+        depth, ratio = self._photon_depth(), self._stored_ratio()
+        eye = memory.eye_bytes(*self._eye_size(scene, sensor, spp))
+        budget = memory.wave_budget(eye, self.wave_bytes)
+        waves = memory.plan_waves(sizes, depth, budget, ratio, self.maps_per_wave)
+        width, height, samples = self._eye_size(scene, sensor, spp)
+        estimate = memory.estimate_render(int(sizes.sum()), depth, width, height, samples,
+                                          ratio, waves, sizes)
+        memory.check_fits(estimate, f"photon_count = {self.params.photon_count}")
+        return [[int(owned[i]) for i in wave] for wave in waves]
+
+    def _tracing_guard(self, scene, sensor, spp, maps):
+        """The check repeated while a wave is traced, with the measured photons stored per
+        photon emitted: does the wave still fit?"""
+        width, height, samples = self._eye_size(scene, sensor, spp)
+        emitted = int(self._emitted_per_map()[maps].sum())
+        depth = self._photon_depth()
 
         def check_during(ratio, done):
-            memory.check_fits(estimate(ratio), f"{what} (projected from the first "
-                                               f"{done:,} photons traced)")
+            estimate = memory.estimate_render(emitted, depth, width, height, samples, ratio)
+            memory.check_fits(estimate, f"photon_count = {self.params.photon_count} "
+                                        f"(projected from the first {done:,} photons traced)")
         return check_during
 
     def _add_stats(self, **values):
@@ -209,6 +243,7 @@ class PhotonMapper(mi.SamplingIntegrator):
 
     def _start_stats(self, render_seed: int):
         p = self.params
+        self._stored_per_emitted = {}
         self.stats = {"photons_emitted": p.photon_count, "map_count": self.map_count,
                       "radius": self.radius,
                       "render_seed": render_seed, "passes": 0, "photons_stored": 0,
@@ -249,11 +284,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         for pass_index in range(self.passes):
             if pass_index:
                 camera.advance()
-            for layer in self._layers:
-                self.build_maps(scene, layer, camera.sensor, camera.spp, seed, pass_index)
-            if pass_index == 0:
-                self._warn_if_empty()
-                self.before_estimate()
+            # The memory guard, before the eye pass allocates anything.
+            waves = self.plan_waves(scene, camera.sensor, camera.spp)
             clock = Stopwatch()
             self._pass_seed = stream_seed(self.params.seed, seed, pass_index) & 0x7FFFFFFF
             ray, weight = camera.rays()
@@ -262,7 +294,8 @@ class PhotonMapper(mi.SamplingIntegrator):
             emitted += eye.emitted * weight
             valid += mi.Float(eye.valid)
             self._add_stats(time_eye=clock.lap(emitted, valid), passes=1)
-            self._estimate_pass(terms, eye.points, camera.width)
+            self._photon_pass(scene, terms, eye.points, camera.width, camera.sensor,
+                              camera.spp, seed, pass_index, waves)
 
             def image(done=pass_index + 1):
                 """The image after this pass (developed into the film)."""
@@ -289,19 +322,40 @@ class PhotonMapper(mi.SamplingIntegrator):
         return eye
 
     def _warn_if_empty(self):
-        if all(layer.stored == 0 for layer in self._layers):
+        stored = sum(v for k, v in self.stats.items() if k.endswith("photons_stored"))
+        if stored == 0:
             log.warning("no photon was stored: the scene has no surface with a non-delta "
                         "BSDF lit by its emitters; only emitted light will show")
 
-    def _estimate_pass(self, terms, points, width: int):
-        """Phases 4 and 5 of one pass: every term's estimate, one gather of all of them,
-        every term's update."""
-        clock = Stopwatch()
-        arrays = []
-        for term in terms:
-            arrays += list(term.compute(points, width))
-        self._add_stats(time_estimate=clock.lap(*arrays))
-        arrays = self.backend.allreduce(arrays, self.stats)
+    def _photon_pass(self, scene, terms, points, width: int, sensor=0, spp: int = 0,
+                     render_seed: int = 0, pass_index: int = 0, waves=None):
+        """Phases 1, 2, 4 and 5 of one pass: wave after wave, trace and build the wave's maps
+        of every layer and add every term's estimate over them; then one gather of all terms
+        and every term's update. A term's sums over the waves are its sums over all maps
+        (eq. 2), so the waves change nothing but the memory held at once."""
+        if waves is None:
+            waves = self.plan_waves(scene, sensor, spp)
+        sums = None
+        for wave_index, wave in enumerate(waves):
+            self.wave_index = wave_index
+            for layer in self._layers:
+                self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave)
+            if pass_index == 0 and wave_index == 0:
+                self.before_estimate()
+            clock = Stopwatch()
+            arrays = []
+            for term in terms:
+                arrays += list(term.compute(points, width))
+            self._add_stats(time_estimate=clock.lap(*arrays))
+            sums = arrays if sums is None else [a + b for a, b in zip(sums, arrays)]
+            if len(waves) > 1:
+                dr.eval(sums)
+                for layer in self._layers:
+                    layer.maps = None
+        if pass_index == 0:
+            self._warn_if_empty()
+        self.stats["waves"] = len(waves)
+        arrays = self.backend.allreduce(sums, self.stats)
         for j, term in enumerate(terms):
             term.state.update(arrays[2 * j], arrays[2 * j + 1])
 
@@ -366,11 +420,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         self._layers = self.layers()
         terms = self.terms(self._layers, width, scene)
         for pass_index in range(self.passes):
-            for layer in self._layers:
-                self.build_maps(scene, layer, pass_index=pass_index)
-            if pass_index == 0:
-                self.before_estimate()
-            self._estimate_pass(terms, eye.points, width)
+            self._photon_pass(scene, terms, eye.points, width, pass_index=pass_index)
         self._finish(terms)
         return eye.emitted + _radiance(terms), eye.valid, []
 

@@ -139,6 +139,12 @@ class PartPMIntegrator(PhotonMapper):
            direct = nee) the global maps are read only where those BSDF-sampled rays land,
            caustics come from the caustic maps (or, without them, from the gather rays that
            reach an emitter through mirrors and glass): Jensen's two-pass method. (Default: 0)
+       * - maps_per_wave
+         - |int|
+         - Maps traced, built and queried at once, in [0, map_count]: the maps of a pass run
+           in waves, each wave's maps freed before the next are traced, which bounds the
+           memory of large photon counts; eq. (2) makes the image the same. 0: as many as
+           fit the memory budget (at most 4 GiB of maps per wave, and what is free). (Default: 0)
        * - backend
          - |string|
          - ``local``: all maps in this process; ``mpi``: inside ``mpiexec -n P``, rank j
@@ -184,6 +190,9 @@ class PartPMIntegrator(PhotonMapper):
         if self.caustic_photon_count and self.caustic_photon_count < self.map_count:
             raise ValueError(f"caustic_photon_count must be 0 (off) or in [map_count = "
                              f"{self.map_count}, ...), got {self.caustic_photon_count}")
+        self.maps_per_wave = read_int(props, "maps_per_wave", 0, low=0, high=self.map_count,
+                                      allowed=f"in [0 (as many as fit), map_count = "
+                                              f"{self.map_count}]")
         self.backend = make_backend(read_choice(props, "backend", "local", BACKENDS),
                                     self.map_count)
 
@@ -262,7 +271,8 @@ class PartPMIntegrator(PhotonMapper):
         p = self.params
         return final_gather(scene, maps, points, width, self.final_gather, radius,
                             seed=stream_seed(p.seed, 0, pass_index), max_depth=p.max_depth,
-                            kernel=p.kernel, caustics=self.caustic_photon_count == 0)
+                            kernel=p.kernel,
+                            caustics=self.caustic_photon_count == 0 and self.wave_index == 0)
 
     def to_string(self):
         p = self.params
@@ -272,4 +282,5 @@ class PartPMIntegrator(PhotonMapper):
                 f"{self.map_count}, {radius}, passes = {self.passes}, alpha = {self.alpha}, "
                 f"time_limit = {self.time_limit}, caustic_photon_count = "
                 f"{self.caustic_photon_count}, final_gather = {self.final_gather}, "
+                f"maps_per_wave = {self.maps_per_wave}, "
                 f"{self.common_props_text()}, backend = {self.backend.name}]")

@@ -1,9 +1,17 @@
-"""Memory guard: will a render fit, before it starts and while photons are traced.
+"""Memory guard and waves: will a render fit, and how many photon maps are held at once.
 
-The estimate counts what grows with the inputs: the tracer's per-path state for one batch,
-the stored photons on the host (as traced) and on the device (as maps), the tree build's
-temporaries, and the eye pass's per-sample state and image. Free memory is the kernel's
-``MemAvailable`` (Linux); where it cannot be read the guard only reports.
+A render holds its eye pass (every sample's path state, the visible points and the terms'
+per-path sums) for the whole pass, and the photon maps of one *wave* at a time: the maps of
+a pass are traced, built and queried a wave after another, and each wave's maps are freed
+before the next is traced. Eq. (2) makes this exact: every map's term is added to the eye
+paths on its own, so the image does not depend on the waves (up to the order of float
+additions). A wave holds as many maps as fit the budget (:func:`plan_waves`): all of them
+when they fit, which is the fastest; fewer when they do not, which is how 10^8 photons fit a
+machine that could not hold their maps at once.
+
+The estimate counts what grows with the inputs, per stored photon of a wave and per eye
+sample; free memory is the kernel's ``MemAvailable`` (Linux), or ``PARTPM_MEMORY_LIMIT``
+(bytes) where a test or a user sets it; where neither can be read the guard only reports.
 """
 from __future__ import annotations
 
@@ -11,33 +19,34 @@ import os
 import resource
 import sys
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 __all__ = ["available_bytes", "peak_rss_bytes", "MemoryEstimate", "estimate_render",
-           "check_fits", "MemoryGuardError", "TRACE_BATCH", "HOST_BYTES_PER_STORED",
-           "DEVICE_BYTES_PER_STORED", "BUILD_BYTES_PER_STORED", "TRACER_BYTES_PER_PATH"]
+           "check_fits", "plan_waves", "wave_budget", "MemoryGuardError", "TRACE_BATCH",
+           "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES", "EYE_BYTES_PER_SAMPLE",
+           "ASSUMED_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES"]
 
 #: Photon paths traced together at most (larger counts run in batches of this size).
-TRACE_BATCH = 1 << 22
-#: Host bytes of one stored photon as traced (position, direction, power, normal: float32;
-#: map id: uint32; bounce: uint16).
-HOST_BYTES_PER_STORED = 4 * 12 + 4 + 2
-#: Device bytes of one stored photon in the maps (record 28 + tree, rounded up).
-DEVICE_BYTES_PER_STORED = 30
-#: Peak temporaries of the tree build per photon (three sort orders and their float64 keys,
-#: the partition's prefix sums, Dr.Jit's allocation cache). Calibrated on the largest run
-#: measured: 10^7 photons emitted into the Cornell box, 29.8 million stored, peak resident
-#: memory 10.0 GB, i.e. 337 bytes per stored photon in all.
-BUILD_BYTES_PER_STORED = 260
-#: Tracer state per live path (ray, power, random state, surface interaction temporaries).
-TRACER_BYTES_PER_PATH = 400
-#: Eye pass state per sample (ray, throughput, sampler, film accumulation).
+TRACE_BATCH = 1 << 20
+#: Bytes of one trace batch's buffers and state (the stored photons' slots, about 3.75 per
+#: path, and the sort that puts them in lane order), whatever the photon count.
+TRACE_BATCH_BYTES = 200 * TRACE_BATCH
+#: Peak bytes per stored photon of a wave while it is traced, built and queried: the photons
+#: as traced (position, direction, power, map, bounce), the tree build's sort orders and
+#: partition temporaries, the maps in tree order, and Dr.Jit's rounding of every allocation
+#: to a power of two. Calibrated with ``partpm bench``'s memory rows (measured, not computed).
+WAVE_BYTES_PER_STORED = 260
+#: Eye pass bytes per sample (ray, throughput, sampler, the visible points, the terms' per-path
+#: sums and the film).
 EYE_BYTES_PER_SAMPLE = 200
 #: Photons stored per emitted photon assumed before tracing, when max_depth does not bound it
-#: lower (measured: 3.0 in the Cornell box, 0.5 for the open Buddha scene). The projection
-#: during tracing replaces it with the measured ratio.
+#: lower (measured: 3.0 in the Cornell box, 0.5 for the open Buddha scene). After the first
+#: wave the measured ratio replaces it.
 ASSUMED_STORED_PER_EMITTED = 3.0
-
+#: The most bytes one wave's photon maps may take by default: renders larger than this run in
+#: waves even where more memory is free, so a render's memory stays predictable (maps of 10^7
+#: stored photons fit in one wave).
+WAVE_BUDGET_BYTES = 4 << 30
 
 class MemoryGuardError(MemoryError):
     """The render would need more memory than is free; the message says which prop to lower."""
@@ -66,39 +75,60 @@ def peak_rss_bytes() -> int:
 
 @dataclass
 class MemoryEstimate:
-    photons: int
-    stored: float
-    tracer: int
-    photon_maps: int
-    build: int
+    """Bytes of a render: its largest wave of photon maps and its eye pass."""
+
+    photons: int          # photons emitted (over the maps of the largest wave)
+    stored: float         # photons stored in the largest wave
+    waves: int
+    photon_maps: int      # peak bytes of the largest wave (trace, build, maps)
     eye: int
 
     @property
     def total(self) -> int:
-        # The tracer's state is freed before the build; the host copy lives through the build.
-        host = int(self.stored * HOST_BYTES_PER_STORED)
-        return max(self.tracer + host, host + self.build + self.photon_maps) + self.eye
+        return self.photon_maps + self.eye
 
     def describe(self) -> str:
         gb = 1e9
+        waves = "" if self.waves == 1 else f" in the largest of {self.waves} waves"
         return (f"{self.total / gb:.2f} GB (photon maps {self.photon_maps / gb:.2f} GB for "
-                f"about {self.stored:.3g} stored photons, tree build {self.build / gb:.2f} GB, "
-                f"tracer {self.tracer / gb:.2f} GB, eye pass {self.eye / gb:.2f} GB)")
+                f"about {self.stored:.3g} stored photons{waves}, eye pass "
+                f"{self.eye / gb:.2f} GB)")
 
 
-def estimate_render(photon_count: int, max_depth: int, width: int, height: int, spp: int,
-                    stored_per_emitted: Optional[float] = None) -> MemoryEstimate:
-    """The bytes a render with these inputs needs (``max_depth`` -1: unlimited)."""
+def stored_photons(photon_count: float, max_depth: int,
+                   stored_per_emitted: Optional[float] = None) -> float:
+    """Photons stored for ``photon_count`` emitted (``max_depth`` -1: unlimited)."""
     ratio = ASSUMED_STORED_PER_EMITTED if stored_per_emitted is None else stored_per_emitted
     if max_depth != -1:
         ratio = min(ratio, float(max_depth))
-    stored = photon_count * ratio
-    return MemoryEstimate(
-        photons=photon_count, stored=stored,
-        tracer=min(photon_count, TRACE_BATCH) * TRACER_BYTES_PER_PATH,
-        photon_maps=int(stored * DEVICE_BYTES_PER_STORED),
-        build=int(stored * BUILD_BYTES_PER_STORED),
-        eye=width * height * spp * EYE_BYTES_PER_SAMPLE)
+    return photon_count * ratio
+
+
+def wave_bytes(emitted: float, max_depth: int, stored_per_emitted=None) -> int:
+    """Peak bytes of one wave of maps that emit ``emitted`` photons."""
+    return int(stored_photons(emitted, max_depth, stored_per_emitted) * WAVE_BYTES_PER_STORED
+               + min(emitted, TRACE_BATCH) / TRACE_BATCH * TRACE_BATCH_BYTES)
+
+
+def eye_bytes(width: int, height: int, spp: int) -> int:
+    return int(width) * int(height) * int(spp) * EYE_BYTES_PER_SAMPLE
+
+
+def estimate_render(photon_count: int, max_depth: int, width: int, height: int, spp: int,
+                    stored_per_emitted: Optional[float] = None,
+                    waves: Sequence[Sequence[int]] = (), map_sizes=None) -> MemoryEstimate:
+    """The bytes a render with these inputs needs: ``photon_count`` photons emitted over
+    the maps of ``map_sizes`` (photons per map; default one map), held in ``waves`` (lists of
+    map indices; default all at once)."""
+    sizes = [photon_count] if map_sizes is None else list(map_sizes)
+    waves = list(waves) or [list(range(len(sizes)))]
+    largest = max(waves, key=lambda w: sum(sizes[m] for m in w))
+    emitted = sum(sizes[m] for m in largest)
+    return MemoryEstimate(photons=int(emitted),
+                          stored=stored_photons(emitted, max_depth, stored_per_emitted),
+                          waves=len(waves),
+                          photon_maps=wave_bytes(emitted, max_depth, stored_per_emitted),
+                          eye=eye_bytes(width, height, spp))
 
 
 def check_fits(estimate: MemoryEstimate, what: str = "this render"):
@@ -109,5 +139,41 @@ def check_fits(estimate: MemoryEstimate, what: str = "this render"):
     fraction = free / estimate.total
     raise MemoryGuardError(
         f"{what} needs about {estimate.describe()}, but only {free / 1e9:.2f} GB are free: "
-        f"lower photon_count (to about {int(estimate.photons * fraction * 0.9):,} here) or "
-        f"max_depth, or the resolution / spp if the eye pass dominates")
+        f"lower photon_count (to about {int(estimate.photons * fraction * 0.9):,} per wave "
+        f"here), raise map_count (smaller maps make smaller waves), or lower max_depth, or "
+        f"the resolution / spp if the eye pass dominates")
+
+
+def wave_budget(eye: int, limit: Optional[int] = None) -> Optional[int]:
+    """The bytes one wave may take: ``limit`` (default :data:`WAVE_BUDGET_BYTES`), and no
+    more than what is free beside the eye pass (None where free memory cannot be read and
+    no limit is set)."""
+    free = available_bytes()
+    budget = WAVE_BUDGET_BYTES if limit is None else int(limit)
+    if free is not None:
+        budget = min(budget, free - eye)
+    return budget
+
+
+def plan_waves(map_sizes: Sequence[int], max_depth: int, budget: Optional[int],
+               stored_per_emitted: Optional[float] = None, maps_per_wave: int = 0) -> list:
+    """The maps (indices into ``map_sizes``, photons emitted per map) of every wave: in map
+    order, each wave as many maps as fit ``budget`` bytes (at least one), or exactly
+    ``maps_per_wave`` when that is > 0. One wave holds all maps when ``budget`` is None."""
+    maps = list(range(len(map_sizes)))
+    if maps_per_wave > 0:
+        return [maps[i:i + maps_per_wave] for i in range(0, len(maps), maps_per_wave)]
+    if budget is None:
+        return [maps]
+    waves, current, emitted = [], [], 0
+    for m in maps:
+        if current and wave_bytes(emitted + map_sizes[m], max_depth,
+                                  stored_per_emitted) > budget:
+            waves.append(current)
+            current, emitted = [], 0
+        current.append(m)
+        emitted += map_sizes[m]
+    waves.append(current)
+    return waves
+
+

@@ -101,7 +101,7 @@ def emit(scene: mi.Scene, rng, photon_count: int, table):
         mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True))
     length = dr.norm(ray.d)
     scaled = dr.gather(mi.UInt32, table, dr.reinterpret_array(mi.UInt32, emitter)) == 1
-    power = mi.Spectrum(weight) * dr.select(scaled, length, 1.0) / float(photon_count)
+    power = mi.Spectrum(weight) * dr.select(scaled, length, 1.0) / dr.opaque(mi.Float, float(photon_count))
     ray.d = ray.d / dr.select(length > 0, length, 1.0)
     return ray, power
 
@@ -236,13 +236,20 @@ class _Run:
         # order of their lanes (a lane's photons are already in bounce order), so that every
         # run hands the same arrays to the build.
         lanes_of = dr.gather(mi.UInt32, out[-1], dr.arange(mi.UInt32, stored))
+        out[-1] = None
         keep = dr.argsort(lanes_of) if stored else dr.zeros(mi.UInt32, 0)
-        points, code, flux, bounces = [dr.gather(type(a), a, keep) for a in out[:-1]]
+        # One field at a time, each buffer freed once read: the batch's peak is its buffers
+        # plus one field in photon order, not two copies of everything.
+        fields = []
+        for i in range(4):
+            fields.append(dr.gather(type(out[i]), out[i], keep))
+            dr.eval(fields[-1])
+            out[i] = None
         # A photon's map is its lane's.
         maps = dr.gather(mi.UInt32, mi.UInt32(lane_map), dr.gather(mi.UInt32, lanes_of, keep))
-        photons = Photons(points, code, flux, maps, bounces, emitted=self.photon_count,
+        dr.eval(maps)
+        photons = Photons(*fields[:3], maps, fields[3], emitted=self.photon_count,
                           map_count=0)
-        dr.eval(photons.points, photons.code, photons.flux, photons.maps, photons.bounces)
         return photons, int(segments[0])
 
     def _kernel(self, map_id, lane_index, capacity):
@@ -260,7 +267,7 @@ class _Run:
                                     self.max_depth, self.rr_depth, self.min_bounce, self.paths)
         total = dr.sum(segments)
         dr.eval(out, counter, total)
-        return out, counter, total
+        return list(out), counter, total
 
 
 def shading_correction(si, wi):
@@ -329,6 +336,10 @@ def _trace_paths(scene, rng, ray, power, out, counter, capacity, max_depth, rr_d
     return segments
 
 
+#: The per-photon fields of :class:`Photons`, in constructor order.
+_FIELDS = ("points", "code", "flux", "maps", "bounces")
+
+
 def _concat(batches, photon_count, map_count) -> Photons:
     """One :class:`Photons` of every batch's photons, in batch order."""
     batches = [b for b in batches if len(b)]
@@ -337,15 +348,18 @@ def _concat(batches, photon_count, map_count) -> Photons:
     if len(batches) == 1:
         b = batches[0]
         return Photons(b.points, b.code, b.flux, b.maps, b.bounces, photon_count, map_count)
-    total = sum(len(b) for b in batches)
-    merged = [dr.zeros(type(a), total) for a in (batches[0].points, batches[0].code,
-                                                 batches[0].flux, batches[0].maps,
-                                                 batches[0].bounces)]
-    offset = 0
-    for b in batches:
-        slot = dr.arange(mi.UInt32, len(b)) + dr.opaque(mi.UInt32, offset)
-        for target, a in zip(merged, (b.points, b.code, b.flux, b.maps, b.bounces)):
-            dr.scatter(target, a, slot)
-        dr.eval(merged)
-        offset += len(b)
+    sizes = [len(b) for b in batches]
+    total = sum(sizes)
+    # Field by field, each batch's copy dropped once moved: at most one field is held twice.
+    merged = []
+    for name in _FIELDS:
+        target = dr.zeros(type(getattr(batches[0], name)), total)
+        offset = 0
+        for b, size in zip(batches, sizes):
+            slot = dr.arange(mi.UInt32, size) + dr.opaque(mi.UInt32, offset)
+            dr.scatter(target, getattr(b, name), slot)
+            dr.eval(target)
+            offset += size
+            setattr(b, name, None)
+        merged.append(target)
     return Photons(*merged, emitted=photon_count, map_count=map_count)

@@ -78,17 +78,6 @@ def test_resolution_for_a_scene_without_resx_says_so(tmp_path, capsys):
 
 # ---------------------------------------------------------------- memory
 
-def test_memory_guard_stops_an_oversize_request_before_tracing(monkeypatch, capsys, tmp_path):
-    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "50e6")     # pretend 50 MB are free
-    assert main(["render", "cornell_box", "--photons", "2000000", "--resolution", "16x16",
-                 "-o", str(tmp_path / "x.exr")]) == 2
-    err = capsys.readouterr().err
-    print(err.strip().splitlines()[-1])
-    assert "photon_count = 2000000 needs about" in err
-    assert "only 0.05 GB are free: lower photon_count" in err
-    assert "trace: emitting" not in err                   # stopped before any tracing
-
-
 def test_memory_is_checked_again_while_tracing_in_batches():
     scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
     seen = []

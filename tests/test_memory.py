@@ -1,0 +1,100 @@
+"""The memory guard and the waves of photon maps: maps traced, built and queried a wave at a
+time give the image of all maps at once (eq. 2), a tight memory limit makes waves instead of
+failing, and what cannot fit even one map per wave is refused before any work."""
+import numpy as np
+import pytest
+
+import mitsuba as mi
+
+import mi_partpm
+from conftest import render
+from mi_partpm import memory
+from mi_partpm.memory import MemoryGuardError, plan_waves, wave_bytes
+
+
+def test_plan_waves_by_hand():
+    """Maps of 10^6 photons, 3 stored each at WAVE_BYTES_PER_STORED bytes: a budget of two
+    and a half maps makes waves of two, the last one shorter; no budget is one wave; an
+    explicit maps_per_wave wins; a budget below one map still gives one map per wave."""
+    sizes = [1_000_000] * 5
+    one = wave_bytes(1_000_000, -1)
+    assert one == int(3e6 * memory.WAVE_BYTES_PER_STORED + memory.TRACE_BATCH_BYTES * 1e6
+                      / memory.TRACE_BATCH)
+    assert plan_waves(sizes, -1, int(2.5 * one)) == [[0, 1], [2, 3], [4]]
+    assert plan_waves(sizes, -1, None) == [[0, 1, 2, 3, 4]]
+    assert plan_waves(sizes, -1, 10 * one, maps_per_wave=3) == [[0, 1, 2], [3, 4]]
+    assert plan_waves(sizes, -1, one // 2) == [[0], [1], [2], [3], [4]]
+    # max_depth 2 stores at most 2 photons per emitted one: more maps per wave (four maps
+    # store 8 x 10^6 photons, 2.08 GB, plus a trace batch of 0.21 GB, under 2.5 x 0.97 GB).
+    assert wave_bytes(4_000_000, 2) <= int(2.5 * one) < wave_bytes(5_000_000, 2)
+    assert plan_waves(sizes, 2, int(2.5 * one)) == [[0, 1, 2, 3], [4]]
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    return mi_partpm.load_scene("cornell_box", resolution=(24, 24), spp=2)
+
+
+def _same(a, b):
+    """Equal up to the order of float additions: the maps' terms are summed wave by wave,
+    not photon after photon in one sum. A float32 sum of m terms is good to about
+    m 2^-24 of its size; these pixels sum up to about 3,000 photons each (up to 1.8e-4):
+    bound 3e-4. Another photon set or a term counted twice is off by percent."""
+    np.testing.assert_allclose(a, b, rtol=3e-4, atol=1e-6 * float(np.max(b)))
+
+
+@pytest.mark.parametrize("extra", [{}, {"passes": 2},
+                                   {"direct": "nee", "final_gather": 2},
+                                   {"caustic_photon_count": 20_000}])
+def test_waves_give_the_image_of_all_maps_at_once(cornell, extra):
+    desc = {"type": "partpm", "photon_count": 20_000, "map_count": 4, **extra}
+    whole = mi.load_dict(desc)
+    a = render(cornell, whole)
+    waved = mi.load_dict({**desc, "maps_per_wave": 1})
+    b = render(cornell, waved)
+    assert whole.stats["waves"] == 1 and waved.stats["waves"] == 4
+    assert a.mean() > 0
+    _same(b, a)
+
+
+def test_a_tight_memory_limit_makes_waves_instead_of_failing(cornell, monkeypatch):
+    """Free memory for about two of the four maps: the render runs in waves and gives the
+    same image; its stats say so."""
+    desc = {"type": "partpm", "photon_count": 400_000, "map_count": 4}
+    whole = mi.load_dict(desc)
+    a = render(cornell, whole)
+    eye = memory.eye_bytes(24, 24, 2)
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", str(eye + int(2.2 * wave_bytes(100_000, -1))))
+    waved = mi.load_dict(desc)
+    b = render(cornell, waved)
+    print(f"waves: {waved.stats['waves']}")
+    assert whole.stats["waves"] == 1 and waved.stats["waves"] == 2
+    _same(b, a)
+
+
+def test_memory_guard_stops_an_oversize_request_before_tracing(monkeypatch, capsys, tmp_path):
+    """50 MB free and one map of 2 x 10^6 photons (about 1.5 GB): not even one map per wave
+    fits, so the render stops before tracing, naming the props to change."""
+    from mi_partpm.cli import main
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "50e6")     # pretend 50 MB are free
+    assert main(["render", "cornell_box", "--photons", "2000000", "--maps", "1",
+                 "--resolution", "16x16", "-o", str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err
+    print(err.strip().splitlines()[-1])
+    assert "photon_count = 2000000 needs about" in err
+    assert "only 0.05 GB are free: lower photon_count" in err
+    assert "raise map_count" in err
+    assert "trace: emitting" not in err                   # stopped before any tracing
+
+
+def test_many_small_maps_fit_where_one_large_map_does_not(monkeypatch):
+    """The same 2 x 10^6 photons in 64 maps fit 400 MB, wave by wave."""
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "400e6")
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    with pytest.raises(Exception) as e:
+        mi.render(scene, integrator=mi.load_dict({"type": "partpm",
+                                                   "photon_count": 2_000_000}))
+    assert "needs about" in str(e.value) or isinstance(e.value.__cause__, MemoryGuardError)
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 2_000_000, "map_count": 64})
+    img = render(scene, integrator)
+    assert integrator.stats["waves"] > 1 and img.mean() > 0
