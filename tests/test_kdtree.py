@@ -192,3 +192,25 @@ def test_morton_order_is_a_permutation_that_keeps_neighbours_together():
     random_step = np.linalg.norm(np.diff(pts, axis=0), axis=1).mean()
     assert step < random_step / 4, (step, random_step)
     assert morton_order(np.zeros((0, 3))).shape == (0,)
+
+
+@pytest.mark.parametrize("grouped_ids", [True, False])
+def test_maps_built_in_groups_give_the_same_forest(monkeypatch, grouped_ids):
+    """Large photon sets are built a group of maps at a time (cache-sized); the forest is
+    the one an all-at-once build gives, bit for bit, whether or not the caller's photons
+    come grouped by map."""
+    from mi_partpm.kdtree import forest as forest_module
+    rng = np.random.default_rng(1)
+    pts = rng.random((50_000, 3)).astype(np.float32)
+    ids = rng.integers(0, 7, 50_000)
+    if grouped_ids:
+        ids = np.sort(ids)
+    monkeypatch.setattr(forest_module, "GROUP_PHOTONS", 1 << 30)
+    whole = build_forest(pts, ids, 7)
+    monkeypatch.setattr(forest_module, "GROUP_PHOTONS", 10_000)
+    assert len(forest_module._groups(whole.photon_count)) == 7
+    grouped = build_forest(pts, ids, 7)
+    for name in ("order", "leaf_start"):
+        np.testing.assert_array_equal(getattr(grouped, name), getattr(whole, name))
+    np.testing.assert_array_equal(grouped.nodes.numpy(), whole.nodes.numpy())
+    np.testing.assert_array_equal(grouped.records.numpy(), whole.records.numpy())
