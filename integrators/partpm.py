@@ -144,7 +144,7 @@ class PartPMIntegrator(PhotonMapper):
          - Maps traced, built and queried at once, in [0, map_count]: the maps of a pass run
            in waves, each wave's maps freed before the next are traced, which bounds the
            memory of large photon counts; eq. (2) makes the image the same. 0: as many as
-           fit the memory budget (at most 4 GiB of maps per wave, and what is free). (Default: 0)
+           fit the memory budget (at most 2 GiB of maps per wave, and what is free). (Default: 0)
        * - backend
          - |string|
          - ``local``: all maps in this process; ``mpi``: inside ``mpiexec -n P``, rank j

@@ -34,19 +34,23 @@ TRACE_BATCH_BYTES = 200 * TRACE_BATCH
 #: Peak bytes per stored photon of a wave while it is traced, built and queried: the photons
 #: as traced (position, direction, power, map, bounce), the tree build's sort orders and
 #: partition temporaries, the maps in tree order, and Dr.Jit's rounding of every allocation
-#: to a power of two. Calibrated with ``partpm bench``'s memory rows (measured, not computed).
-WAVE_BYTES_PER_STORED = 260
+#: to a power of two. Measured: 131 bytes (Dr.Jit's peak over the stored photons of one wave
+#: of 3 x 10^7 in the Cornell box); 150 leaves room for scenes that store more per path.
+WAVE_BYTES_PER_STORED = 150
 #: Eye pass bytes per sample (ray, throughput, sampler, the visible points, the terms' per-path
-#: sums and the film).
-EYE_BYTES_PER_SAMPLE = 200
+#: sums and the film). Measured at 480 x 480 x 16: 100 (Cornell box) to 258 (glossy spheres
+#: traced on by BSDF sampling, with emitter sampling) bytes per sample.
+EYE_BYTES_PER_SAMPLE = 280
 #: Photons stored per emitted photon assumed before tracing, when max_depth does not bound it
 #: lower (measured: 3.0 in the Cornell box, 0.5 for the open Buddha scene). After the first
 #: wave the measured ratio replaces it.
 ASSUMED_STORED_PER_EMITTED = 3.0
 #: The most bytes one wave's photon maps may take by default: renders larger than this run in
-#: waves even where more memory is free, so a render's memory stays predictable (maps of 10^7
-#: stored photons fit in one wave).
-WAVE_BUDGET_BYTES = 4 << 30
+#: waves even where more memory is free, so that a render's memory stays predictable and about
+#: 80 bytes per stored photon or less (maps of about 1.4 x 10^7 stored photons fit one wave).
+#: Waves cost no speed: smaller builds stay in the caches (10^7 photons emitted into 8 maps:
+#: 45.6 s in 2 waves, 50.7 s in one).
+WAVE_BUDGET_BYTES = 2 << 30
 
 class MemoryGuardError(MemoryError):
     """The render would need more memory than is free; the message says which prop to lower."""

@@ -13,21 +13,23 @@ from mi_partpm.memory import MemoryGuardError, plan_waves, wave_bytes
 
 
 def test_plan_waves_by_hand():
-    """Maps of 10^6 photons, 3 stored each at WAVE_BYTES_PER_STORED bytes: a budget of two
-    and a half maps makes waves of two, the last one shorter; no budget is one wave; an
-    explicit maps_per_wave wins; a budget below one map still gives one map per wave."""
+    """Maps of 10^6 photons emitted, 3 stored each at WAVE_BYTES_PER_STORED bytes, plus one
+    trace batch: a budget of exactly two maps makes waves of two, the last one shorter; no
+    budget is one wave; an explicit maps_per_wave wins; a budget below one map still gives
+    one map per wave; max_depth 2 stores at most 2 per emitted photon, so three maps fit."""
     sizes = [1_000_000] * 5
     one = wave_bytes(1_000_000, -1)
     assert one == int(3e6 * memory.WAVE_BYTES_PER_STORED + memory.TRACE_BATCH_BYTES * 1e6
                       / memory.TRACE_BATCH)
-    assert plan_waves(sizes, -1, int(2.5 * one)) == [[0, 1], [2, 3], [4]]
+    two = wave_bytes(2_000_000, -1)
+    assert two == int(6e6 * memory.WAVE_BYTES_PER_STORED + memory.TRACE_BATCH_BYTES)
+    assert plan_waves(sizes, -1, two) == [[0, 1], [2, 3], [4]]
+    assert plan_waves(sizes, -1, two - 1) == [[0], [1], [2], [3], [4]]
     assert plan_waves(sizes, -1, None) == [[0, 1, 2, 3, 4]]
     assert plan_waves(sizes, -1, 10 * one, maps_per_wave=3) == [[0, 1, 2], [3, 4]]
     assert plan_waves(sizes, -1, one // 2) == [[0], [1], [2], [3], [4]]
-    # max_depth 2 stores at most 2 photons per emitted one: more maps per wave (four maps
-    # store 8 x 10^6 photons, 2.08 GB, plus a trace batch of 0.21 GB, under 2.5 x 0.97 GB).
-    assert wave_bytes(4_000_000, 2) <= int(2.5 * one) < wave_bytes(5_000_000, 2)
-    assert plan_waves(sizes, 2, int(2.5 * one)) == [[0, 1, 2, 3], [4]]
+    assert wave_bytes(3_000_000, 2) == two < wave_bytes(4_000_000, 2)
+    assert plan_waves(sizes, 2, two) == [[0, 1, 2], [3, 4]]
 
 
 @pytest.fixture(scope="module")
