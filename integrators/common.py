@@ -338,6 +338,9 @@ class PhotonMapper(mi.SamplingIntegrator):
         sums = None
         for wave_index, wave in enumerate(waves):
             self.wave_index = wave_index
+            if len(waves) > 1:
+                log.info("wave %d of %d: maps %d-%d of %d", wave_index + 1, len(waves),
+                         wave[0], wave[-1], self.map_count)
             for layer in self._layers:
                 self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave)
             if pass_index == 0 and wave_index == 0:

@@ -21,7 +21,7 @@ def run_compare(args) -> int:
         scene=args.scene, maps=args.maps or 8, photons=args.photons,
         resolution=args.resolution or (480, 480), spp=args.spp or 4,
         reference_spp=args.reference_spp, radius_fraction=args.radius_fraction, k=args.k,
-        seed=args.seed, direct=args.direct, data_dir=args.data)
+        seed=args.seed, direct=args.direct, data_dir=args.data, best=not args.no_best)
     try:
         settings.check()
     except ValueError as e:

@@ -118,6 +118,9 @@ def _experiment_options(sub):
                                       "(default 0.05, the paper's 1/20)")
     c.add_argument("--reference-spp", type=positive_int("--reference-spp"), default=512,
                    help="samples per pixel of the path-traced reference (default 512)")
+    c.add_argument("--no-best", action="store_true",
+                   help="skip partpm's best configuration (rendered beside the paper's by "
+                        "default)")
     c.add_argument("--out", help="output directory")
 
     v = sub.add_parser("converge", help="error against wall time: progressive partpm, pm and "
