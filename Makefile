@@ -3,7 +3,8 @@
 #   make test   run the test suite
 # Both create .venv/ on first use, install the package with its test extras, make sure a shared
 # libLLVM >= 16 is present for Dr.Jit's LLVM backend, and run with DRJIT_LIBLLVM_PATH set.
-# A second run reuses the environment: it reinstalls only when pyproject.toml changes.
+# A second run reuses the environment: it reinstalls only when pyproject.toml or
+# constraints.txt (the pinned versions of every package) changes.
 
 PYTHON ?= python3
 VENV   := .venv
@@ -21,10 +22,10 @@ help:
 	@echo "make demo   render the built-in cornell_box (480x480, 10^5 photons, 8 maps) to $(OUT)/"
 	@echo "make test   run the test suite"
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -e '.[test]' -c constraints.txt
 	@touch $(STAMP)
 
 install: $(STAMP)
