@@ -166,14 +166,17 @@ class PhotonMapper(mi.SamplingIntegrator):
         photons = photons.with_maps(dr.gather(mi.UInt32, mi.UInt32(local_of), photons.maps),
                                     len(maps))
         t_trace = clock.lap()
+        cpu_trace = clock.cpu
         layer.maps = build_photon_maps(photons, keep_bounce=bounded)
         layer.stored, segments = len(photons), photons.segments
         del photons
         t_build = clock.lap()
+        cpu_build = clock.cpu
         if traced_here:
             self._stored_per_emitted[layer.name] = layer.stored / traced_here
         prefix = "" if layer.name == "global" else f"{layer.name}_"
-        self._add_stats(time_trace=t_trace, time_build=t_build, segments=segments,
+        self._add_stats(time_trace=t_trace, time_build=t_build, cpu_trace=cpu_trace,
+                        cpu_build=cpu_build, segments=segments,
                         **{f"{prefix}photons_stored": layer.stored,
                            f"{prefix}photons_traced": traced_here})
         self.stats.update(map_bytes=max(self.stats.get("map_bytes", 0), layer.maps.nbytes),
@@ -249,6 +252,8 @@ class PhotonMapper(mi.SamplingIntegrator):
                       "render_seed": render_seed, "passes": 0, "photons_stored": 0,
                       "photons_traced": 0, "segments": 0, "time_trace": 0.0,
                       "time_build": 0.0, "time_eye": 0.0, "time_estimate": 0.0,
+                      "cpu_trace": 0.0, "cpu_build": 0.0, "cpu_eye": 0.0,
+                      "cpu_estimate": 0.0,
                       "time_reduce": 0.0, "reduce_bytes": 0}
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -293,7 +298,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                                 self.backend.emission_weight)
             emitted += eye.emitted * weight
             valid += mi.Float(eye.valid)
-            self._add_stats(time_eye=clock.lap(emitted, valid), passes=1)
+            self._add_stats(time_eye=clock.lap(emitted, valid), cpu_eye=clock.cpu, passes=1)
             self._photon_pass(scene, terms, eye.points, camera.width, camera.sensor,
                               camera.spp, seed, pass_index, waves)
 
@@ -349,7 +354,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             arrays = []
             for term in terms:
                 arrays += list(term.compute(points, width))
-            self._add_stats(time_estimate=clock.lap(*arrays))
+            self._add_stats(time_estimate=clock.lap(*arrays), cpu_estimate=clock.cpu)
             sums = arrays if sums is None else [a + b for a, b in zip(sums, arrays)]
             if len(waves) > 1:
                 dr.eval(sums)

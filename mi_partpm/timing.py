@@ -40,13 +40,18 @@ def median_time(fn: Callable, repeats: int, jit: bool = True, warmup: int = 1) -
 
 
 class Stopwatch:
-    """Seconds since the last :meth:`lap` (or since creation), after syncing Dr.Jit."""
+    """Seconds since the last :meth:`lap` (or since creation), after syncing Dr.Jit; and the
+    process's CPU seconds over the same span (every thread's, Dr.Jit's pool included) in
+    :attr:`cpu`, for models that share cores out (the MPI backend's prediction)."""
 
     def __init__(self):
         self._last = time.perf_counter()
+        self._last_cpu = time.process_time()
+        self.cpu = 0.0
 
     def lap(self, *values) -> float:
         sync(*values)
-        now = time.perf_counter()
+        now, now_cpu = time.perf_counter(), time.process_time()
         seconds, self._last = now - self._last, now
+        self.cpu, self._last_cpu = now_cpu - self._last_cpu, now_cpu
         return seconds
