@@ -210,7 +210,8 @@ def test_the_mesh_ships_with_the_package_and_overrides_are_honoured(tmp_path, mo
 
 # Measured at these settings (64x64, 100k photons, 4 maps, 4 spp, path reference at 512 spp)
 # with seeds 0-3; `pytest -s -k compare_` prints the figures of the test's seed.
-SMALL = dict(resolution=(64, 64), photons=100_000, maps=4, spp=4, reference_spp=512)
+SMALL = dict(resolution=(64, 64), photons=100_000, maps=4, spp=4, reference_spp=512,
+             best=False)
 
 
 @pytest.fixture(scope="module")
@@ -343,6 +344,12 @@ def test_compare_cli(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "partpm_vs_pm" in text and "mean kNN radius" in text
     assert (tmp_path / "comparison.png").is_file()
+    # The best configuration is rendered beside the paper's, at the same photon budget.
+    result = json.loads((tmp_path / "metrics.json").read_text())
+    assert "partpm_best_vs_reference" in result["metrics"] and "partpm_best_vs_reference" in text
+    assert result["best"]["photon_count"] + result["best"]["caustic_photon_count"] == 5000
+    assert result["best"]["final_gather"] == 8 and (tmp_path / "partpm_best.exr").is_file()
+    assert 0 < result["worst_tile"]["share"] <= 1 and 0 <= result["worst_tile"]["share_other"] <= 1
     assert main(["compare", "cornell_box", "--resolution", "4x4", "--out", str(tmp_path)]) == 2
     assert "at least 7x7" in capsys.readouterr().err
 
