@@ -158,3 +158,24 @@ def test_scaling_command_small(tmp_path, capsys):
     assert main(["scaling", "cornell_box", "--ranks", "1,3", "--maps", "2",
                  "--out", str(tmp_path)]) == 2
     assert "every P in --ranks must be in [1, maps = 2], got 3" in capsys.readouterr().err
+
+
+def test_render_prediction_from_one_rank_by_hand():
+    """The MPI render model (mi_partpm.experiments.mpimodel) on numbers worked by hand: a
+    P = 1 run of 8 maps on 2 cores with CPU seconds trace 2, build 2, estimate 8, eye 2 and a
+    wall time of 8 s (efficiency 14 / (2 x 8) = 0.875). P = 1 reproduces its own 8 s; P = 2
+    (one core each, 4 maps each): 2 + 12 x 4/8 = 8 s of work at efficiency 1, plus one
+    reduction; P = 4 (half a core each, 2 maps): (2 + 3) / 0.5 = 10 s; P = 3 owns at most 3
+    maps: (2 + 12 x 3/8) / (2/3) = 9.75 s."""
+    from mi_partpm.experiments.mpimodel import PhaseWork, predict
+    work = PhaseWork(cpu={"trace": 2.0, "build": 2.0, "estimate": 8.0, "eye": 2.0},
+                     wall=8.0, maps=8, passes=1, cores=2)
+    assert work.efficiency == pytest.approx(0.875)
+
+    def reduce(nbytes):
+        return 1e-9 * nbytes
+    assert predict(work, 1, reduce, 10**6)["render"] == pytest.approx(8.0)
+    two = predict(work, 2, reduce, 10**6)
+    assert two["compute"] == pytest.approx(8.0) and two["reduce"] == pytest.approx(1e-3)
+    assert predict(work, 4, reduce, 10**6)["compute"] == pytest.approx(10.0)
+    assert predict(work, 3, reduce, 10**6)["compute"] == pytest.approx(9.75)
