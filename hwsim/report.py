@@ -1,7 +1,8 @@
 """Reports of a simulated PE array over the recorded workloads: tables, CSV/JSON, plots, sweeps.
 
 For every recorded n the array has one PE per map (the paper's proposal) and the frame is
-simulated with and without the gather; the speedup against n = 1 shows what the gather costs.
+simulated with and without the gather; the speedup against n = 1 shows what the gather costs,
+with the configured gather network and, in ``networks``, with every other one.
 For the largest n, a sweep over PE counts P (maps shared round-robin, a PE's maps sharing its
 SRAM) and gather networks (a bus; trees and rings, pipelined and store-and-forward) shows
 where adding PEs stops paying: the first P from which doubling P shortens the frame by less
@@ -120,10 +121,12 @@ def calibration(loads, meta, check_dir=None) -> dict:
 
 
 def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
-               progress=None) -> dict:
+               progress=None, code=None) -> dict:
     """Simulate every recorded n, sweep PEs, topologies, DRAM sharing and the assumed
     constants, calibrate on the measured times (and check on ``check_dir``); write the files.
-    ``progress``: called with a line before each phase (None: silent)."""
+    ``progress``: called with a line before each phase (None: silent). ``code``: the version
+    of the code that runs the report, recorded in ``report.json`` (hwsim does not import the
+    renderer, whose sources the version is a hash of: the caller passes it in)."""
     say = progress or (lambda *a: None)
     meta, loads = load_workloads(workload_dir)
     say(f"{meta.get('scene', workload_dir)}: n = {', '.join(map(str, sorted(loads)))}, "
@@ -139,11 +142,14 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
     sweep = _network_sweep(config, loads[n_max], pes)
     say("sweeping shared DRAM channels (event model) ...")
     contention = _contention_sweep(config, loads[n_max], pes)
+    say("every gather network with one PE per map, every n ...")
+    networks = _networks_per_n(config, loads)
     say(f"sensitivity: {len(ASSUMED)} constants x0.5 and x2 ...")
     sens = sensitivity(config, loads)
-    result = {"config": asdict(config), "workload": {k: meta[k] for k in (
-        "scene", "queries", "radius", "photons_stored") if k in meta},
-        "rows": rows, "sweep": sweep,
+    result = {**({"code": code} if code else {}), "config": asdict(config),
+        "workload": {k: meta[k] for k in (
+            "scene", "queries", "radius", "photons_stored") if k in meta},
+        "rows": rows, "networks": networks, "sweep": sweep,
         "saturation_pe_count": {g[0]: _saturation([s for s in sweep if s["gather"] == g[0]])
                                 for g in GATHERS},
         "contention": contention,
@@ -201,6 +207,21 @@ def _network_sweep(config, workload, pes) -> list:
                           "gather_share": r.gather_share, "dram_bytes": _dram_bytes(r)})
     _add_speedups(sweep, "gather")
     return sweep
+
+
+def _networks_per_n(config, loads) -> list:
+    """Every gather network of :data:`GATHERS` with one PE per map (P = n), for every
+    recorded n: the gather's share of the frame as the array grows with the maps."""
+    rows = []
+    for label, topology, pipelined in GATHERS:
+        for n in sorted(loads):
+            cfg = config.with_(pe_count=n, gather={"topology": topology, "pipelined": pipelined})
+            r = simulate(cfg, loads[n])
+            rows.append({"gather": label, "topology": topology, "pipelined": pipelined,
+                         "n": n, "pe_count": n, "frame_cycles": r.frame_cycles,
+                         "gather_cycles": r.gather_cycles, "gather_share": r.gather_share,
+                         "dram_bytes": _dram_bytes(r)})
+    return rows
 
 
 def _contention_sweep(config, workload, pes) -> list:

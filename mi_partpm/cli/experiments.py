@@ -50,10 +50,11 @@ def run_bench(args) -> int:
 def run_hwsim(args) -> int:
     from hwsim.config import load_config
     from hwsim.report import format_report, run_report
+    from ..experiments.provenance import code_version
     try:
         config = load_config(args.config)
         result = run_report(args.workloads, config, args.out, args.check,
-                            progress=progress(args))
+                            progress=progress(args), code=code_version())
     except (OSError, ValueError) as e:
         raise UsageError(str(e)) from None
     if not args.quiet:

@@ -145,12 +145,15 @@ def _checkpoints(every: int, out: Path, integrator):
 
 def _write(args, out: Path, image, stats: dict, seconds: dict, resolution):
     import mitsuba as mi
+
+    from ..experiments.provenance import code_version
     if args.stats_json:
         Path(args.stats_json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.stats_json).write_text(json.dumps(
             {"time_load": seconds["load"], "time_render": seconds["render"],
              "scene": args.scene, "integrator": args.integrator, "backend": args.backend,
-             "resolution": resolution, **stats}, indent=2, default=str) + "\n")
+             "resolution": resolution, "code": code_version(), **stats}, indent=2,
+            default=str) + "\n")
     out.parent.mkdir(parents=True, exist_ok=True)
     mi.Bitmap(image).write(str(out))
     mi.util.write_bitmap(str(out.with_suffix(".png")), image, write_async=False)

@@ -159,7 +159,7 @@ def hwsim_report(scene: str, config=None, check_scene: str | None = None) -> dic
     workloads = out_dir(f"speedup_{scene}") / "workloads"
     check = out_dir(f"speedup_{check_scene}") / "workloads" if check_scene else None
     out = out_dir(f"hwsim_{scene}")
-    result = run_report(workloads, config or HardwareConfig(), out, check)
+    result = run_report(workloads, config or HardwareConfig(), out, check, code=code_version())
     result["out"] = str(out)
     return result
 

@@ -18,17 +18,22 @@ __all__ = ["code_version", "machine", "git_commit", "scene_digest"]
 _ROOT = Path(__file__).resolve().parents[2]
 #: The source folders whose files make a result (relative to the project's root).
 SOURCES = ("mi_partpm", "integrators", "hwsim")
+#: Files of :data:`SOURCES` that make no result: they only run the experiments and format
+#: their results (``partpm figures``), so changing them reruns nothing.
+NOT_RESULTS = ("mi_partpm/experiments/regenerate.py", "mi_partpm/experiments/readme.py",
+               "mi_partpm/cli/figures.py")
 
 
 @lru_cache(maxsize=1)
 def code_version() -> str:
     """SHA-256 (first 16 hex digits) of every ``.py``, ``.xml`` and ``.toml`` file of
-    :data:`SOURCES`, in path order."""
+    :data:`SOURCES` but :data:`NOT_RESULTS`, in path order."""
     digest = hashlib.sha256()
     for folder in SOURCES:
         base = _ROOT / folder
         files = sorted(p for p in base.rglob("*") if p.suffix in (".py", ".xml", ".toml")
-                       and "__pycache__" not in p.parts)
+                       and "__pycache__" not in p.parts
+                       and p.relative_to(_ROOT).as_posix() not in NOT_RESULTS)
         for path in files:
             digest.update(str(path.relative_to(_ROOT)).encode())
             digest.update(path.read_bytes())
@@ -49,8 +54,21 @@ def git_commit() -> str:
     return commit.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
 
 
+def _cpu_model() -> str:
+    """The processor's model name (Linux: /proc/cpuinfo), or ''."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.lower().startswith(("model name", "hardware", "cpu model")):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
 def machine() -> dict:
-    """The machine: processor, cores, memory, OS, Python, Mitsuba and Dr.Jit versions."""
+    """The machine: processor (and its model), cores, memory, OS, Python, Mitsuba and Dr.Jit
+    versions."""
     import drjit as dr
     import mitsuba as mi
     memory = None
@@ -59,7 +77,7 @@ def machine() -> dict:
             memory = int(f.readline().split()[1]) * 1024
     except OSError:
         pass
-    return {"processor": platform.processor() or platform.machine(),
+    return {"processor": platform.processor() or platform.machine(), "model": _cpu_model(),
             "cores": os.cpu_count(), "memory_bytes": memory, "os": platform.platform(),
             "python": platform.python_version(), "mitsuba": mi.__version__,
             "drjit": dr.__version__, "threads": dr.thread_count()}

@@ -25,6 +25,7 @@ import numpy as np
 
 from hwsim.collective import fit_collective, fit_regimes
 from ..backends import find_mpiexec
+from .provenance import code_version
 from .reducebench import CONDITIONS, run_reduce_bench
 
 __all__ = ["run_scaling", "format_scaling"]
@@ -43,8 +44,8 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
     Each row holds the medians over the repeats of: the render time (trace, build, estimate
     and gather, as rank 0 measures it; process start-up and scene loading are not counted),
     the slowest rank's trace / build / estimate time, the reduction time and bytes, the
-    speedup and efficiency against the first P, and the largest relative pixel difference
-    from the first P's image.
+    speedup and efficiency against the first P, the largest relative pixel difference
+    from the first P's image, and the version of the code that made it (``code``).
     """
     for p in ranks:
         if p < 1 or p > maps:
@@ -86,6 +87,7 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
             "reduce_bytes_per_rank": runs[0]["ranks"][0]["reduce_bytes"],
             "tree_bytes_max": max(r["map_bytes"] for r in runs[0]["ranks"]),
             "max_rel_diff_vs_first": diff, "repeats": repeats, "time_compute_max": compute,
+            "code": code_version(),
         })
     base = rows[0]
     for row in rows:
