@@ -16,11 +16,14 @@ OUT    ?= out
 LLVM    = $(shell sh tools/libllvm.sh)
 RUN_ENV = DRJIT_LIBLLVM_PATH="$(LLVM)"
 
-.PHONY: demo test install llvm help clean
+.PHONY: demo test figures install llvm help clean
 
 help:
 	@echo "make demo   render the built-in cornell_box (480x480, 10^5 photons, 8 maps) to $(OUT)/"
 	@echo "make test   run the test suite"
+	@echo "make figures  rerun what the README's tables and figures and the notebooks come"
+	@echo "              from (reusing runs of the same code and settings) and rewrite them;"
+	@echo "              FIGURES_ARGS='--list' (or '--only bench') passes options"
 
 $(STAMP): pyproject.toml constraints.txt
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -41,6 +44,12 @@ demo: install llvm
 
 test: install llvm
 	$(RUN_ENV) $(BIN)/python -m pytest -q $(PYTEST_ARGS)
+
+# Every table and figure of README.md and the notebooks from the current code: the runs go
+# to out/figures/ (one folder per step, reused when made by the same code and settings),
+# the plots to docs/images/, the provenance to docs/figures.json (partpm figures --help).
+figures: install llvm
+	$(RUN_ENV) $(BIN)/partpm figures $(FIGURES_ARGS)
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache

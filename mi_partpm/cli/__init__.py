@@ -9,10 +9,14 @@
                                                  and Mitsuba's path tracer
     partpm hwsim WORKLOAD_DIR [options] --out DIR   the PE-array simulator
     partpm scaling SCENE [options] --out DIR     strong scaling of the MPI backend
+    partpm figures [--out DIR] [--only NAME,...] [--smoke] [--list]
+                                                 every table and figure of the README and
+                                                 the notebooks, from the current code
 
 SCENE is a built-in scene name (``partpm render --list``) or a Mitsuba XML file; ``partpm
-COMMAND --help`` lists a command's options (:mod:`.parser`). ``render`` is :mod:`.render`, the
-others :mod:`.experiments`. Errors end with one line on stderr and exit status 2.
+COMMAND --help`` lists a command's options (:mod:`.parser`). ``render`` is :mod:`.render`,
+``figures`` :mod:`.figures`, the others :mod:`.experiments`. Errors end with one line on stderr
+and exit status 2.
 """
 from __future__ import annotations
 
@@ -22,6 +26,7 @@ import sys
 from .common import UsageError, parse_resolution
 from .experiments import (run_bench, run_compare, run_converge, run_hwsim, run_scaling,
                           run_speedup)
+from .figures import run_figures
 from .parser import build_parser
 from .render import format_ranks, run_render
 
@@ -30,7 +35,7 @@ __all__ = ["main", "parse_resolution", "format_ranks"]
 #: Subcommand -> the function that runs it.
 COMMANDS = {"render": run_render, "compare": run_compare, "speedup": run_speedup,
             "bench": run_bench, "hwsim": run_hwsim, "scaling": run_scaling,
-            "converge": run_converge}
+            "converge": run_converge, "figures": run_figures}
 
 
 def main(argv=None) -> int:

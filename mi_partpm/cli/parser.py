@@ -49,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     _render_options(sub)
     _experiment_options(sub)
+    _figures_options(sub)
     return parser
 
 
@@ -200,3 +201,24 @@ def _experiment_options(sub):
                         "the alpha-beta model (default 15)")
     m.add_argument("--out", required=True, help="output directory (CSV, JSON, images)")
     m.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
+
+def _figures_options(sub):
+    f = sub.add_parser("figures", help="run every experiment behind the README and the "
+                                       "notebooks (reusing runs of the same code and "
+                                       "settings), then rewrite the README's tables, "
+                                       "docs/images/ and docs/figures.json")
+    f.add_argument("--out", help="where the runs go, one folder per step (default "
+                                 "out/figures; with --smoke a new temporary folder)")
+    f.add_argument("--only", metavar="NAME,...",
+                   help="only these steps or groups (demo, compare, speedup, hwsim, bench, "
+                        "scaling, converge, notebooks), and the steps they read; --list "
+                        "names them")
+    f.add_argument("--smoke", action="store_true",
+                   help="tiny sizes; writes nothing into docs/, notebooks/ or README.md (a "
+                        "README copy with its blocks filled, the images and the provenance "
+                        "go into --out)")
+    f.add_argument("--list", action="store_true",
+                   help="list the steps, their commands and whether each would be reused, "
+                        "and the README blocks; run nothing")
+    f.add_argument("-q", "--quiet", action="store_true", help="print only errors")

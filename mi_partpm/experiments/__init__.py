@@ -7,5 +7,10 @@
 - :mod:`.bench`: ``partpm bench``, the kd-tree and tracer against named baselines;
 - :mod:`.scaling` and :mod:`.reducebench`: ``partpm scaling``, the MPI backend over P ranks,
   and the reduction micro-benchmark its gather model is fitted to;
-- :mod:`.notebook`: what the notebooks share (sizes, reuse of finished runs).
+- :mod:`.converge`: ``partpm converge``, error against time of progressive partpm, pm and
+  path;
+- :mod:`.notebook`: what the notebooks share (sizes, reuse of finished runs);
+- :mod:`.regenerate` and :mod:`.readme`: ``partpm figures``, every experiment behind the
+  README and the notebooks, reused when the code and settings match, and the README's
+  generated tables; :mod:`.provenance`: the code version, commit and machine of a result.
 """
