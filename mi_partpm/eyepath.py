@@ -157,6 +157,9 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     """
     bounded = max_depth != UNLIMITED_DEPTH
     limit = segment_limit(max_depth)
+    # Opaque: the ranks of a distributed render (weights 1 and 0) share their kernels.
+    emission = dr.opaque(mi.Float, float(emission)) if isinstance(emission, (int, float)) \
+        else emission
     width = dr.width(ray.o)
     ray = mi.Ray3f(ray)
     L = dr.zeros(mi.Spectrum, width)

@@ -139,20 +139,30 @@ def test_backend_prop_is_checked():
 
 def test_scaling_command_small(tmp_path, capsys):
     assert main(["scaling", "cornell_box_diffuse", "--ranks", "1,2", "--maps", "2",
-                 "--photons", "4000", "--resolution", "16x16", "--spp", "1", "--repeats", "1",
+                 "--photons", "200000", "--resolution", "32x32", "--spp", "1", "--repeats", "3",
                  "--bench-repeats", "3", "--out", str(tmp_path)]) == 0
     text = capsys.readouterr().out
     assert "effic." in text
     rows = json.loads((tmp_path / "scaling.json").read_text())
     assert [r["ranks"] for r in rows] == [1, 2]
-    assert rows[1]["max_rel_diff_vs_first"] < 1e-5
-    # The prediction adds the fitted reduction to the slowest rank's measured phases; the
-    # phases are almost all of the render, so it must land within 25% (measured: 2-5%).
+    # The two ranks' sums meet in one float32 addition instead of one running sum: a pixel
+    # of m photons may round by about (2 m + 4) 2^-24 (m up to about 5,000 here: 6e-4).
+    assert rows[1]["max_rel_diff_vs_first"] < 1e-3
+    # The render time of P = 2 is predicted from P = 1's CPU seconds per phase and the
+    # reduction benchmark alone (mi_partpm.experiments.mpimodel). P = 1 reproduces itself
+    # by construction (up to medians of parts over the repeats: measured under 0.1%, bound
+    # 1%); P = 2 is out of sample. At this tiny size start-up
+    # costs weigh more than at the README's (where the command reports the error), so the
+    # bound is loose: 50% (measured -20%). A model that forgot the replicated eye pass or
+    # the shared cores misses by 2x.
+    assert abs(rows[0]["render_pred_rel_error"]) < 0.01
+    assert rows[1]["render_pred_out_of_sample"] and not rows[0]["render_pred_out_of_sample"]
+    assert abs(rows[1]["render_pred_rel_error"]) < 0.5, rows[1]
     for r in rows:
-        assert abs(r["render_pred_rel_error"]) < 0.25, r
         assert r["time_reduce_pred_transport"] >= 0 and r["time_reduce_pred_in_situ"] >= 0
     info = json.loads((tmp_path / "collective.json").read_text())
-    assert set(info) == {"transport", "in_situ"}
+    assert set(info) == {"transport", "in_situ", "model"}
+    assert 0 < info["model"]["efficiency_p1"] <= 1
     assert info["transport"]["image"]["reduce_seconds"]["1024"] > \
         info["transport"]["image"]["reduce_seconds"]["2"] > 0
     assert main(["scaling", "cornell_box", "--ranks", "1,3", "--maps", "2",

@@ -14,7 +14,9 @@ splits it out:
 - a rank's work runs at the parallel efficiency Dr.Jit reached at P = 1 when it has more than
   one core (wall = work / (cores x efficiency), efficiency = P = 1's work / (C x its wall)),
   and at efficiency 1 on one core or less (nothing left to run in parallel);
-- plus the reduction's time at P from the micro-benchmark's fit, once per pass.
+- plus the reduction's time at P from the micro-benchmark's fit, once per pass;
+- plus what the P = 1 render spent outside the phases (setting up the camera, developing
+  the film), which rank 0 does alone whatever P.
 
 The slowest rank's time (the one owning the most maps) is the render's. Nothing of the
 P > 1 runs enters the prediction; :func:`predict` is checked against them afterwards.
@@ -40,14 +42,17 @@ class PhaseWork:
     maps: int
     passes: int
     cores: int
+    overhead: float = 0.0   # the render's wall time outside the phases
 
     @classmethod
     def from_stats(cls, stats: dict, cores: int) -> "PhaseWork":
         """From a rank's stats of a P = 1 run (``partpm render --stats-json``)."""
         cpu = {ph: float(stats[f"cpu_{ph}"]) for ph in (*PHASES, "eye")}
         wall = sum(float(stats[f"time_{ph}"]) for ph in (*PHASES, "eye"))
+        render = float(stats.get("time_render", wall))
         return cls(cpu=cpu, wall=wall, maps=int(stats["map_count"]),
-                   passes=max(1, int(stats.get("passes", 1))), cores=int(cores))
+                   passes=max(1, int(stats.get("passes", 1))), cores=int(cores),
+                   overhead=max(0.0, render - wall))
 
     @property
     def efficiency(self) -> float:
@@ -73,4 +78,5 @@ def predict(work: PhaseWork, ranks: int, reduce_seconds: Callable[[int], float],
     reduction = work.passes * reduce_seconds(reduce_bytes) if ranks > 1 else 0.0
     return {"ranks": ranks, "owned_max": owned_max, "rank_work": rank_work,
             "cores_per_rank": cores_per_rank, "efficiency_p1": work.efficiency,
-            "compute": compute, "reduce": reduction, "render": compute + reduction}
+            "compute": compute, "reduce": reduction, "overhead": work.overhead,
+            "render": compute + reduction + work.overhead}

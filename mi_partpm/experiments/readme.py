@@ -329,10 +329,11 @@ def format_mpi_prediction(results: dict, step: str = "scaling_cornell_box") -> s
                      f"{r['time_reduce_pred_transport'] * 1e3:.2f} ms",
                      f"{r['time_reduce_pred_in_situ'] * 1e3:.2f} ms",
                      f"{r['time_render']:.2f} s",
-                     f"{r['time_render_pred']:.2f} s ({r['render_pred_rel_error'] * 100:+.2f}%)"])
+                     f"{r['time_render_pred']:.2f} s ({r['render_pred_rel_error'] * 100:+.1f}%)",
+                     "yes" if r.get("render_pred_out_of_sample") else "no (the model's input)"])
     return _table(["P", "reduce measured", "predicted, transport",
-                   "predicted, beside Dr.Jit's threads", "render measured", "render predicted"],
-                  "rrrrrr", rows)
+                   "predicted, beside Dr.Jit's threads", "render measured",
+                   "render predicted from P = 1", "out of sample"], "rrrrrrl", rows)
 
 
 def format_scaling(results: dict, step: str = "scaling_cornell_box") -> str:

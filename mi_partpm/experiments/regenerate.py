@@ -104,7 +104,7 @@ SIZES = {
         "speedup_wide": ("--maps", "1,2,4,8,16,32,64,128,256,512,1024", "--resolution",
                          "128x128", "--repeats", "1"),
         "bench": (),
-        "scaling": ("--ranks", "1,2", "--maps", "8"),
+        "scaling": ("--ranks", "1,2,4", "--maps", "8"),
         "converge": ("--time", "25"),
         "converge_long": ("--time", "150", "--methods", "partpm"),
     },

@@ -6,10 +6,11 @@ reads the figures each run writes with ``--stats-json`` and tabulates time, spee
 efficiency per P, and the gather's share. Every image is compared with the P = 1 image.
 
 It then runs the reduction micro-benchmark (:mod:`.reducebench`) on each P, fits its
-two-regime alpha-beta lines (:mod:`hwsim.collective`) and predicts each P's render time as the
-slowest rank's trace + build + estimate plus the fitted reduction of the image: the check of
-the communication model against the backend it models. ``collective.json`` holds the
-measurements, the fits and the reduction extrapolated to larger P on this transport.
+two-regime alpha-beta lines (:mod:`hwsim.collective`), and predicts each P's render time
+from the first P's (P = 1's) CPU seconds per phase and the fitted reduction alone
+(:mod:`.mpimodel`); the prediction is then compared with the measured time, out of sample for
+every P > 1. ``collective.json`` holds the measurements, the fits and the reduction
+extrapolated to larger P under the stated assumptions of :func:`_extrapolate`.
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ import numpy as np
 from hwsim.collective import fit_collective, fit_regimes
 from ..backends import find_mpiexec
 from .provenance import code_version
+from .mpimodel import PhaseWork, predict
 from .reducebench import CONDITIONS, run_reduce_bench
 
 __all__ = ["run_scaling", "format_scaling"]
@@ -54,7 +56,7 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
     out.mkdir(parents=True, exist_ok=True)
     mpiexec = find_mpiexec()
     say = progress or (lambda *a: None)
-    rows, first_image = [], None
+    rows, first_image, p1_stats = [], None, []
     for p in ranks:
         runs = []
         for rep in range(repeats):
@@ -80,6 +82,8 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
                    for ph in ("trace", "build", "eye", "estimate")}
         compute = _median([max(r["time_trace"] + r["time_build"] + r["time_eye"]
                                + r["time_estimate"] for r in run["ranks"]) for run in runs])
+        if not rows:
+            p1_stats = [_rank0_stats(run) for run in runs]
         rows.append({
             "ranks": p, "maps": maps, "time_render": _median([r["time_render"] for r in runs]),
             **{f"time_{k}_max": v for k, v in slowest.items()},
@@ -95,7 +99,7 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
         row["efficiency"] = row["speedup"] * base["ranks"] / row["ranks"]
         row["reduce_share"] = row["time_reduce"] / row["time_render"]
     if bench_repeats > 0:
-        _predict(rows, out, mpiexec_args, bench_repeats, say, timeout)
+        _predict(rows, out, mpiexec_args, bench_repeats, say, timeout, p1_stats)
     with open(out / "scaling.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -108,10 +112,29 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
 EXTRAPOLATE_RANKS = (2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 
 
-def _predict(rows, out, mpiexec_args, repeats, say, timeout):
-    """Micro-benchmark the reduction on every P in both conditions, fit it, and predict each
-    row's reduction (transport alone and in situ) and render time (transport)."""
+def _rank0_stats(run: dict) -> dict:
+    """Rank 0's figures of one render's ``--stats-json``, with the render's wall time."""
+    stats = dict(run["ranks"][0])
+    stats["time_render"] = run["time_render"]
+    return stats
+
+
+def _phase_work(p1_stats) -> PhaseWork:
+    """The first P's work per phase: medians over its repeats."""
+    works = [PhaseWork.from_stats(s, os.cpu_count() or 1) for s in p1_stats]
+    first = works[0]
+    return PhaseWork(cpu={ph: _median([w.cpu[ph] for w in works]) for ph in first.cpu},
+                     wall=_median([w.wall for w in works]), maps=first.maps,
+                     passes=first.passes, cores=first.cores,
+                     overhead=_median([w.overhead for w in works]))
+
+
+def _predict(rows, out, mpiexec_args, repeats, say, timeout, p1_stats):
+    """Micro-benchmark the reduction on every P in both conditions and fit it; predict each
+    row's reduction (transport alone and in situ) and, from the first P's work per phase and
+    the transport fit alone, its render time (:mod:`.mpimodel`)."""
     info = {}
+    transport = {}
     for condition in CONDITIONS:
         benches, fits = {}, {}
         for row in rows:
@@ -121,21 +144,42 @@ def _predict(rows, out, mpiexec_args, repeats, say, timeout):
                                           repeats, mpiexec_args, timeout, condition)
             fits[p] = fit_regimes(benches[p]["sizes"], benches[p]["reduce"])
             row[f"time_reduce_pred_{condition}"] = fits[p](row["reduce_bytes_per_rank"])
+        if condition == "transport":
+            transport = fits
         entry = {"benchmarks": benches, "reduce_fits": {p: f.as_dict() for p, f in fits.items()}}
         multi = [p for p in benches if p >= 2]
         if multi:
-            model = fit_collective(benches[max(multi)])
-            nbytes = rows[0]["reduce_bytes_per_rank"]
-            alpha, beta, gamma = model.alpha_beta_gamma(nbytes)
-            entry["collective"] = model.as_dict()
-            entry["image"] = {"bytes": nbytes, "alpha": alpha, "beta": beta, "gamma": gamma,
-                              "reduce_seconds": {q: model.reduce_seconds(q, nbytes)
-                                                 for q in EXTRAPOLATE_RANKS}}
+            entry.update(_extrapolate(benches[max(multi)], rows[0]["reduce_bytes_per_rank"]))
         info[condition] = entry
+    work = _phase_work(p1_stats) if p1_stats and rows[0]["ranks"] == 1 else None
     for row in rows:
-        row["time_render_pred"] = row["time_compute_max"] + row["time_reduce_pred_transport"]
+        if work is None:
+            continue
+        pred = predict(work, row["ranks"], transport[row["ranks"]], row["reduce_bytes_per_rank"])
+        row["time_render_pred"] = pred["render"]
+        row["time_compute_pred"] = pred["compute"]
         row["render_pred_rel_error"] = row["time_render_pred"] / row["time_render"] - 1.0
+        row["render_pred_out_of_sample"] = row["ranks"] != 1
+    info["model"] = {"p1_work": work.__dict__ if work else None,
+                     "efficiency_p1": work.efficiency if work else None}
     (out / "collective.json").write_text(json.dumps(info, indent=2) + "\n")
+
+
+def _extrapolate(bench: dict, nbytes: int) -> dict:
+    """The alpha-beta(-gamma) model fitted to the largest P benchmarked, and the image's
+    reduction extrapolated to :data:`EXTRAPOLATE_RANKS`. It assumes that every link of a
+    larger job has this node's latency and bandwidth (one node's shared-memory transport,
+    not a cluster network), that MPICH reduces along a binomial tree of log2(P) steps, and
+    that nothing else competes for the links: a lower bound for a cluster, whose own alpha
+    and beta the same command measures there."""
+    model = fit_collective(bench)
+    alpha, beta, gamma = model.alpha_beta_gamma(nbytes)
+    return {"collective": model.as_dict(),
+            "image": {"bytes": nbytes, "alpha": alpha, "beta": beta, "gamma": gamma,
+                      "assumes": "this node's alpha and beta on every link, a binomial "
+                                 "tree, no contention",
+                      "reduce_seconds": {q: model.reduce_seconds(q, nbytes)
+                                         for q in EXTRAPOLATE_RANKS}}}
 
 
 def _read_exr(path) -> np.ndarray:
@@ -156,8 +200,10 @@ def format_scaling(rows) -> str:
     lines.append("times: medians over repeats; trace/build/estimate: the slowest rank; "
                  "speedup and efficiency against the first P")
     if "time_render_pred" in rows[0]:
-        lines.append("predicted from the reduction micro-benchmark's alpha-beta fits "
-                     "(transport alone; in situ, beside Dr.Jit's thread pool):")
+        lines.append("predicted: the reduction from the micro-benchmark's alpha-beta fits "
+                     "(transport alone; in situ, beside Dr.Jit's thread pool); the render "
+                     "from the first P's CPU seconds per phase and the transport fit alone "
+                     "(out of sample for every other P):")
         lines.append(f"{'P':>3} {'reduce ms':>9} {'transport':>9} {'in situ':>9} "
                      f"{'render s':>9} {'predicted':>9} {'error':>7}")
         for r in rows:
