@@ -423,6 +423,24 @@ class Block:
         return self.cited or self.steps
 
 
+def format_large(results: dict, steps=("large_1e7", "large_1e8")) -> str:
+    """Large renders in waves (``partpm render --stats-json``): photons, waves, phase times
+    and the measured peak memory per stored photon."""
+    rows = []
+    for step in steps:
+        r = results[step]
+        stored = max(int(r["photons_stored"]), 1)
+        rows.append([f"{int(r['photons_emitted']):,}", f"{int(r['map_count'])}",
+                     f"{int(r.get('waves', 1))}", f"{stored:,}",
+                     f"{r['time_trace']:.1f}", f"{r['time_build']:.1f}",
+                     f"{r['time_estimate']:.1f}", f"{r['time_render']:.0f}",
+                     f"{r['peak_memory_bytes'] / 1e9:.2f}",
+                     f"{r['peak_memory_bytes'] / stored:.1f}"])
+    return _table(["photons emitted", "maps", "waves", "photons stored", "trace s", "build s",
+                   "estimate s", "render s", "peak memory GB", "peak bytes per stored photon"],
+                  "rrrrrrrrrr", rows)
+
+
 BLOCKS = {b.name: b for b in (
     Block("compare", ("compare_cornell_box", "compare_happy_buddha"), format_compare),
     Block("compare_best", ("compare_cornell_box", "compare_happy_buddha",
@@ -443,6 +461,7 @@ BLOCKS = {b.name: b for b in (
           cited=("hwsim_cornell_box", "hwsim_happy_buddha", "hwsim_wide_cornell_box")),
     Block("mpi_prediction", ("scaling_cornell_box",), format_mpi_prediction),
     Block("scaling", ("scaling_cornell_box",), format_scaling),
+    Block("large", ("large_1e7", "large_1e8"), format_large),
 )}
 
 

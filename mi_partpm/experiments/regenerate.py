@@ -107,6 +107,8 @@ SIZES = {
         "scaling": ("--ranks", "1,2,4", "--maps", "8"),
         "converge": ("--time", "25"),
         "converge_long": ("--time", "150", "--methods", "partpm"),
+        "large": {"1e7": ("--photons", "10000000", "--maps", "8"),
+                  "1e8": ("--photons", "100000000", "--maps", "64")},
     },
     "smoke": {
         "demo": ("--maps", "2", "--photons", "2000", "--resolution", "32x32", "--spp", "1"),
@@ -123,6 +125,8 @@ SIZES = {
                      "--reference-spp", "16"),
         "converge_long": ("--time", "1", "--methods", "partpm", "--resolution", "24x24",
                           "--photons", "2000", "--reference-spp", "16"),
+        "large": {"1e7": ("--photons", "20000", "--maps", "2"),
+                  "1e8": ("--photons", "40000", "--maps", "4")},
     },
 }
 
@@ -174,6 +178,13 @@ def steps(smoke: bool = False) -> list:
                                             "{out}/scaling_cornell_box"), "scaling.json"))
     out.append(Step("bench", ("bench", *z["bench"], "--out", "{out}/bench/bench.json"),
                     "bench.json"))
+    for size, args in z["large"].items():
+        # Large photon counts in waves of maps: time and peak memory per stored photon.
+        out.append(Step(f"large_{size}", ("render", "cornell_box", *args, "--spp", "1",
+                                          "--resolution", "480x480", "--radius-fraction",
+                                          "0.01", "-o", f"{{out}}/large_{size}/cornell_box.exr",
+                                          "--stats-json", f"{{out}}/large_{size}/stats.json"),
+                        "stats.json"))
     out.append(Step("notebooks", (), "notebooks.json", kind="notebooks",
                     needs=tuple(f"{e}_{s}" for e in ("compare", "speedup", "hwsim")
                                 for s in PAPER_SCENES)))
