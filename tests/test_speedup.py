@@ -33,6 +33,9 @@ def test_speedup_per_map_estimates_gather_to_one_map(tmp_path):
     assert json.loads((tmp_path / "speedup.json").read_text())["code"] == code_version()
     meta, loads = load_workloads(tmp_path / "workloads")
     assert sorted(loads) == [1, 2, 4, 7] and meta["queries"] == result["queries"] > 1000
+    # Format version 2: the radius as a fraction of the scene and the timing threads.
+    assert meta["version"] == 2 and meta["radius_fraction"] == 0.05 and meta["threads"] >= 1
+    assert meta["leaf_size"] == 32
     one = loads[1]
     for n, w in loads.items():
         # Same photons, same radius: the photons found per query split exactly over the maps.
@@ -121,6 +124,82 @@ def test_speedup_cli_and_errors(tmp_path, capsys):
     assert "lcm = 21" in capsys.readouterr().err
 
 
+CALIBRATE_TINY = ["--leaf-sizes", "4,16", "--radius-fractions", "0.05,0.1", "--maps", "1,2",
+                  "--photons", "4000", "--resolution", "16x16", "--repeats", "2"]
+
+
+def test_calibrate_writes_sets_with_their_leaf_size_and_radius(tmp_path, capsys):
+    """`partpm calibrate` at a tiny size: one set per (leaf size, radius), each a workloads
+    folder recording both, loaded back by hwsim. The same photons and radius find the same
+    photons per query at every leaf size (the tree changes what is tested, not what is
+    found), a 4-photon leaf tests fewer photons than a 16-photon one and visits more nodes,
+    and twice the radius finds more; every map is timed twice on one thread. The costs file
+    and the hwsim config beside it load, the config running on the fitted costs; --refit
+    with --check fits again without measuring and checks both ways."""
+    from hwsim.calibrate import read_costs
+    from hwsim.config import load_config
+    from hwsim.workload import load_workload_sets
+    out = tmp_path / "cal"
+    assert main(["calibrate", "cornell_box_diffuse", *CALIBRATE_TINY, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "leaf4_r0.05" in text and "condition number" in text and "ns/node" in text
+    index, sets = load_workload_sets(out / "sets")
+    assert index["scene"] == "cornell_box_diffuse" and index["settings"]["threads"] == 1
+    by = {(st.leaf_size, st.meta["radius_fraction"]): st for st in sets}
+    assert sorted(by) == [(4, 0.05), (4, 0.1), (16, 0.05), (16, 0.1)]
+    for (leaf, frac), st in by.items():
+        assert st.name == f"leaf{leaf}_r{frac:g}" and st.meta["threads"] == 1
+        assert st.radius == pytest.approx(by[4, 0.05].radius * frac / 0.05, rel=1e-6)
+        assert sorted(st.loads) == [1, 2]
+        for n, w in st.loads.items():
+            assert w.map_seconds.shape == (n, 2) and (w.map_seconds > 0).all()
+            np.testing.assert_array_equal(w.photons_found.sum(axis=0),
+                                          st.loads[1].photons_found[0])
+    for frac in (0.05, 0.1):
+        small, large = by[4, frac].loads[1], by[16, frac].loads[1]
+        np.testing.assert_array_equal(small.photons_found, large.photons_found)
+        assert small.photons_tested.sum() < large.photons_tested.sum()
+        assert small.nodes_visited.sum() > large.nodes_visited.sum()
+    assert by[4, 0.1].loads[1].photons_found.sum() > by[4, 0.05].loads[1].photons_found.sum()
+    saved = json.loads((out / "calibration.json").read_text())
+    assert saved["code"] == code_version() and saved["check"] is None
+    assert saved["fit"]["rows"] == 4 * (1 + 2) and len(saved["fit"]["design"]["vif"]) == 3
+    costs = read_costs(out / "fitted_costs.toml")
+    assert costs["threads"] == 1 and costs["scene"] == "cornell_box_diffuse"
+    assert costs["seconds_per_map"] == pytest.approx(saved["fit"]["costs"]["fixed"])
+    cfg = load_config(out / "hwsim_fitted.toml")
+    assert cfg.compute_cycles()["source"] == "fitted"
+    assert cfg.compute_cycles()["map"] == pytest.approx(costs["seconds_per_map"] * cfg.clock_hz)
+    # Fit again, checked on itself as "the other scene": both directions, no new times.
+    before = (out / "sets" / "leaf4_r0.05" / "n1.npz").read_bytes()
+    assert main(["calibrate", "--refit", "--check", str(out), "--out", str(out), "-q"]) == 0
+    again = json.loads((out / "calibration.json").read_text())
+    assert (out / "sets" / "leaf4_r0.05" / "n1.npz").read_bytes() == before
+    assert [d["fit_on"] for d in again["check"]["directions"]] == ["cornell_box_diffuse"] * 2
+    d = again["check"]["directions"][0]
+    assert d["prediction"]["r2"] == pytest.approx(again["fit"]["self"]["r2"])
+    assert set(d["prediction"]["per_set"]) == {st.name for st in sets}
+
+
+def test_calibrate_cli_errors(tmp_path, capsys):
+    assert main(["calibrate", "cornell_box", "--leaf-sizes", "8,0", "--out", str(tmp_path)]) \
+        == 2
+    assert "--leaf-sizes must be comma-separated integers >= 1" in capsys.readouterr().err
+    assert main(["calibrate", "cornell_box", "--leaf-sizes", "8,8", "--out", str(tmp_path)]) \
+        == 2
+    assert "--leaf-sizes must be distinct integers >= 1" in capsys.readouterr().err
+    assert main(["calibrate", "cornell_box", "--radius-fractions", "0.05,x", "--out",
+                 str(tmp_path)]) == 2
+    assert "--radius-fractions must be comma-separated numbers" in capsys.readouterr().err
+    assert main(["calibrate", "cornell_box", "--radius-fractions", "0.05,2", "--out",
+                 str(tmp_path)]) == 2
+    assert "--radius-fractions must be distinct numbers in (0, 1]" in capsys.readouterr().err
+    assert main(["calibrate", "--out", str(tmp_path)]) == 2
+    assert "calibrate needs SCENE" in capsys.readouterr().err
+    assert main(["calibrate", "--refit", "--out", str(tmp_path)]) == 2
+    assert "holds neither sets.json" in capsys.readouterr().err
+
+
 #: How each kind of bench row derives its ratio from its own figures, and its unit, by the
 #: row's ``ratio_meaning`` (bench.py's ``_Bench.row`` callers).
 RATIO_OF = {
@@ -157,7 +236,7 @@ def test_bench_smoke(tmp_path, capsys):
                    for o in ("unsorted", "sorted")]
                 + ["integrator estimate, 32 maps in turn / 1 map"]
                 + [f"build, {n:,} photons" for n in smoke["builds"]]
-                + [f"tracing, {smoke['trace']:,} photons"]
+                + [f"tracing, {smoke['trace']:,} photons, vs path max_depth {d}" for d in (2, 8)]
                 + [f"emitting, {kind}" for kind in EMITTER_KINDS if kind != "area_rectangle"]
                 + [f"memory, {n:,} photons emitted" for n in smoke["memory"]])
     assert len(names) == len(set(names)), "a benchmark name appears twice"
