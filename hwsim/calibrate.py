@@ -1,22 +1,62 @@
-"""Calibration: fit per-node, per-test, per-found and fixed costs to measured per-map times.
+"""Calibration: per-node, per-test, per-found and per-map costs fitted to measured CPU times.
 
-The measured CPU time of map m answering all queries (``map_seconds`` in the workload) is
-modelled as
+The measured CPU time of map m answering all Q queries (``map_seconds`` in a workload, the
+median over its repeats) is modelled as
 
     t_m = a * sum_q nodes + b * sum_q tested + c * sum_q found + d
 
-with a, b, c, d >= 0 (non-negative least squares over every map of every n of one scene).
-:func:`check` then predicts another scene's per-map times with the fitted costs and reports
-R^2 and the largest relative error: whether the traversal counts explain the time.
+with a, b, c, d >= 0: seconds per node visited, per photon tested, per photon found, and
+per map run (the fixed cost of one map answering its queries: on the CPU, recording and
+launching its kernel). One row per map of every n of every set.
+
+**The design.** Within one speedup run (one leaf size, one radius) nodes, tests and found
+photons fall together as n grows, so the columns are nearly collinear and the fit cannot
+tell the costs apart (it may put one of them at 0 and another absorbs it). ``partpm
+calibrate`` therefore records *sets*: the same photons and hit points at several leaf sizes
+(small leaves: many nodes per test; large leaves: many tests per node) and several radii
+(found photons grow as r^2, tests per found photon shrink). :func:`design` reports how far
+the columns are apart: their correlations, variance inflation factors and the condition
+number of the scaled matrix the fit solves.
+
+**The fit** (:func:`calibrate`, :func:`fit`) is non-negative least squares over all rows of
+all sets, with columns scaled to unit norm (then unscaled). By default it weighs every row by
+1 / t_m ("relative": it minimises relative errors, as the timing noise is relative and the
+goal is a largest relative error); "absolute" weighs rows equally. Every cost comes with the
+standard error of the least squares on the costs that stay positive (s^2 (A^T A)^-1 of the
+weighted, scaled rows) and a bootstrap interval (rows resampled, 2.5 and 97.5 percentiles).
+A cost fitted to 0 is flagged: the design did not identify it, or the time does not depend
+on it.
+
+:func:`check` predicts other per-map times with fitted costs: R^2, the largest and the median
+relative error, overall and per set. :func:`cross_check` fits on one scene and predicts the
+other, both ways, against :data:`GOAL`. :func:`write_costs` writes the fitted costs as the
+file hwsim's ``[pe] costs = "fitted"`` reads (:mod:`hwsim.config`).
+
+NumPy and SciPy only: hwsim never imports Mitsuba.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import nnls
 
-__all__ = ["Costs", "features", "fit", "check", "synthetic_workloads"]
+from .workload import MapWorkloads, WorkloadSet
+
+__all__ = ["Costs", "Fit", "COST_NAMES", "FEATURES", "WEIGHTINGS", "GOAL", "features",
+           "set_features", "fit", "calibrate", "check", "design", "cross_check", "goal",
+           "write_costs", "read_costs", "format_fit", "format_check", "format_cross",
+           "synthetic_workloads"]
+
+#: The fitted costs, in the order of the feature columns.
+COST_NAMES = ("per_node", "per_test", "per_found", "fixed")
+#: What each column counts, per map.
+FEATURES = ("nodes visited", "photons tested", "photons found", "map runs")
+#: Row weightings of the fit: 1 / t (relative errors) or 1 (absolute errors).
+WEIGHTINGS = ("relative", "absolute")
+#: What a cross-scene prediction must reach: R^2, largest relative error, every cost > 0.
+GOAL = {"r2": 0.95, "max_rel_error": 0.15}
 
 #: Bytes of a tree node and a photon record in the synthetic workloads (those of an RGB map).
 SYNTHETIC_NODE_BYTES, SYNTHETIC_RECORD_BYTES = 8, 28
@@ -24,17 +64,66 @@ SYNTHETIC_NODE_BYTES, SYNTHETIC_RECORD_BYTES = 8, 28
 
 @dataclass
 class Costs:
+    """Seconds per node visited, photon tested, photon found, and per map run."""
+
     per_node: float
     per_test: float
     per_found: float
     fixed: float
 
+    def as_array(self) -> np.ndarray:
+        return np.array([self.per_node, self.per_test, self.per_found, self.fixed])
+
     def predict(self, x: np.ndarray) -> np.ndarray:
-        return x @ np.array([self.per_node, self.per_test, self.per_found, self.fixed])
+        return x @ self.as_array()
+
+
+@dataclass
+class Fit:
+    """A calibration: the costs, how well they are determined, and the design behind them."""
+
+    costs: Costs
+    standard_errors: dict      # cost -> seconds (None for a cost fitted to 0)
+    intervals: dict            # cost -> (low, high) bootstrap 95% interval, seconds
+    zero_share: dict           # cost -> share of bootstrap fits that put it at 0
+    zero: list                 # costs fitted to 0
+    weighting: str
+    rows: int
+    sets: int
+    design: dict
+    self_check: dict
+
+    @property
+    def all_positive(self) -> bool:
+        return not self.zero
+
+    def as_dict(self) -> dict:
+        return {"costs": self.costs.__dict__, "standard_errors": self.standard_errors,
+                "intervals": {k: list(v) for k, v in self.intervals.items()},
+                "zero_share": self.zero_share, "zero": self.zero,
+                "all_positive": self.all_positive, "weighting": self.weighting,
+                "rows": self.rows, "sets": self.sets, "design": self.design,
+                "self": self.self_check}
+
+
+def _as_sets(data) -> list:
+    """A list of :class:`WorkloadSet` from one workload ``{n: MapWorkloads}``, one set, or a
+    list of either."""
+    if isinstance(data, WorkloadSet):
+        return [data]
+    if isinstance(data, dict):
+        return [WorkloadSet("workloads", {}, data)]
+    out = []
+    for i, item in enumerate(data):
+        out += [WorkloadSet(f"set{i}", {}, item)] if isinstance(item, dict) else _as_sets(item)
+    if not out:
+        raise ValueError("no workloads to calibrate on")
+    return out
 
 
 def features(loads) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(X, t, n): one row per map of every n: summed counts and 1; its median time; its n."""
+    """(X, t, n) of one workload ``{n: MapWorkloads}``: one row per map of every n, its
+    summed counts and 1 (:data:`FEATURES`); its median measured time; its n."""
     rows, times, ns = [], [], []
     for n, w in sorted(loads.items()):
         if w.map_seconds.size == 0:
@@ -44,31 +133,340 @@ def features(loads) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                          float(w.photons_found[m].sum()), 1.0])
             times.append(float(np.median(w.map_seconds[m])))
             ns.append(n)
-    return np.array(rows), np.array(times), np.array(ns)
+    return np.array(rows).reshape(-1, 4), np.array(times), np.array(ns)
 
 
-def fit(loads) -> Costs:
-    """Non-negative least-squares costs (seconds per node, test, found, and per map run)."""
-    x, t, _ = features(loads)
-    # Scale columns to comparable magnitudes before NNLS; undo afterwards.
-    scale = np.maximum(np.abs(x).max(axis=0), 1e-30)
-    coef, _ = nnls(x / scale, t)
-    coef = coef / scale
-    return Costs(*coef.tolist())
+def set_features(data) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list]:
+    """(X, t, n, set index, sets) over every map of every n of every set of ``data``."""
+    sets = _as_sets(data)
+    xs, ts, ns, which = [], [], [], []
+    for i, s in enumerate(sets):
+        x, t, n = features(s.loads)
+        xs.append(x)
+        ts.append(t)
+        ns.append(n)
+        which.append(np.full(t.size, i))
+    t = np.concatenate(ts)
+    if not np.all(t > 0):
+        raise ValueError("every measured map time must be > 0 to calibrate on")
+    return np.concatenate(xs), t, np.concatenate(ns), np.concatenate(which), sets
 
 
-def check(costs: Costs, loads) -> dict:
-    """How well ``costs`` predict the per-map times of ``loads``: R^2, largest relative error,
-    and the per-n medians measured and predicted."""
-    x, t, ns = features(loads)
-    p = costs.predict(x)
-    ss_res = float(((t - p) ** 2).sum())
+def _weighted(x, t, weighting):
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {', '.join(WEIGHTINGS)}, got "
+                         f"{weighting!r}")
+    w = 1.0 / t if weighting == "relative" else np.ones_like(t)
+    return x * w[:, None], t * w
+
+
+def _nnls(a, b) -> np.ndarray:
+    """NNLS on columns scaled to unit norm (a column of zeros stays at 0)."""
+    scale = np.linalg.norm(a, axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    coef, _ = nnls(a / scale, b)
+    return coef / scale
+
+
+def fit(data, weighting: str = "relative") -> Costs:
+    """The NNLS costs of ``data`` (a workload, a set or a list of them), in seconds."""
+    x, t, *_ = set_features(data)
+    a, b = _weighted(x, t, weighting)
+    return Costs(*_nnls(a, b).tolist())
+
+
+def _standard_errors(a, b, coef) -> dict:
+    """Least-squares standard errors of the positive costs, s^2 (A_P^T A_P)^-1 on the
+    weighted rows (P: the costs NNLS kept positive); None for a cost at 0."""
+    positive = coef > 0
+    out = {name: None for name in COST_NAMES}
+    dof = b.size - int(positive.sum())
+    if dof <= 0 or not positive.any():
+        return out
+    ap = a[:, positive]
+    s2 = float(((a @ coef - b) ** 2).sum()) / dof
+    scale = np.linalg.norm(ap, axis=0)
+    cov = np.linalg.pinv((ap / scale).T @ (ap / scale)) * s2 / np.outer(scale, scale)
+    for name, v in zip(np.array(COST_NAMES)[positive], np.sqrt(np.maximum(np.diag(cov), 0))):
+        out[str(name)] = float(v)
+    return out
+
+
+def _bootstrap(a, b, resamples, seed):
+    """NNLS of ``resamples`` bootstrap resamples of the rows: (resamples, 4) costs."""
+    rng = np.random.default_rng(seed)
+    m = b.size
+    out = np.empty((resamples, a.shape[1]))
+    for i in range(resamples):
+        pick = rng.integers(0, m, m)
+        out[i] = _nnls(a[pick], b[pick])
+    return out
+
+
+def calibrate(data, weighting: str = "relative", resamples: int = 400,
+              seed: int = 0) -> Fit:
+    """Fit the costs to every map of ``data`` (a workload, a set, or a list of them) and say
+    how well they are determined: standard errors, bootstrap intervals (``resamples`` seeded
+    resamples of the rows), the costs fitted to 0, the design's conditioning, and the fit's
+    check on its own rows."""
+    x, t, _, _, sets = set_features(data)
+    if t.size < len(COST_NAMES) + 1:
+        raise ValueError(f"needs >= {len(COST_NAMES) + 1} measured maps for its "
+                         f"{len(COST_NAMES)} costs, the workloads hold {t.size}")
+    a, b = _weighted(x, t, weighting)
+    coef = _nnls(a, b)
+    boot = _bootstrap(a, b, resamples, seed) if resamples else np.empty((0, 4))
+    intervals, zero_share = {}, {}
+    for j, name in enumerate(COST_NAMES):
+        if boot.size:
+            intervals[name] = (float(np.percentile(boot[:, j], 2.5)),
+                               float(np.percentile(boot[:, j], 97.5)))
+            zero_share[name] = float(np.mean(boot[:, j] <= 0))
+        else:
+            intervals[name], zero_share[name] = (math.nan, math.nan), math.nan
+    costs = Costs(*coef.tolist())
+    return Fit(costs=costs, standard_errors=_standard_errors(a, b, coef),
+               intervals=intervals, zero_share=zero_share,
+               zero=[n for n, c in zip(COST_NAMES, coef) if not c > 0],
+               weighting=weighting, rows=int(t.size), sets=len(sets),
+               design=design(sets, weighting), self_check=check(costs, sets))
+
+
+def design(data, weighting: str = "relative") -> dict:
+    """How far apart the design puts the costs' columns, over every map of ``data``:
+    the correlations of nodes, tests and found photons per map (``correlation``, 3 x 3), each
+    column's variance inflation factor against the other three with the constant
+    (1 / (1 - R^2) of that regression; 1: independent, over 10: nearly collinear), and the
+    condition number of the weighted matrix with unit-norm columns that NNLS solves."""
+    x, t, *_ = set_features(data)
+    counts = x[:, :3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = np.corrcoef(counts.T) if counts.shape[0] > 1 else np.full((3, 3), np.nan)
+    vif = {}
+    for j, name in enumerate(("nodes", "tests", "found")):
+        others = np.delete(x, j, axis=1)
+        coef, *_ = np.linalg.lstsq(others, counts[:, j], rcond=None)
+        resid = counts[:, j] - others @ coef
+        total = ((counts[:, j] - counts[:, j].mean()) ** 2).sum()
+        r2 = 1.0 - float((resid ** 2).sum()) / total if total > 0 else 1.0
+        vif[name] = 1.0 / (1.0 - r2) if r2 < 1 else math.inf
+    a, _ = _weighted(x, t, weighting)
+    norm = np.linalg.norm(a, axis=0)
+    cond = float(np.linalg.cond(a / np.where(norm > 0, norm, 1.0)))
+    return {"columns": list(FEATURES), "correlation": np.round(corr, 6).tolist(),
+            "vif": vif, "condition_number": cond, "weighting": weighting,
+            "rows": int(t.size)}
+
+
+def _scores(t, p) -> dict:
+    rel = (p - t) / t
     ss_tot = float(((t - t.mean()) ** 2).sum())
-    per_n = {int(n): {"measured": float(np.median(t[ns == n])),
-                      "predicted": float(np.median(p[ns == n]))} for n in np.unique(ns)}
-    return {"r2": 1.0 - ss_res / ss_tot if ss_tot > 0 else float("nan"),
-            "max_rel_error": float(np.max(np.abs(p - t) / t)),
-            "per_n": per_n}
+    return {"r2": 1.0 - float(((t - p) ** 2).sum()) / ss_tot if ss_tot > 0 else math.nan,
+            "max_rel_error": float(np.max(np.abs(rel))),
+            "median_rel_error": float(np.median(np.abs(rel))),
+            "bias": float(np.median(rel)), "maps": int(t.size)}
+
+
+def check(costs: Costs, data) -> dict:
+    """How well ``costs`` predict the per-map times of ``data``: R^2, the largest and median
+    relative error and the median signed one (``bias``: predicted over measured, less 1),
+    over every map and per set (``per_set``, with its leaf size and radius); the worst map;
+    and per n the median time measured and predicted (``per_n``, pooled over sets)."""
+    x, t, ns, which, sets = set_features(data)
+    p = costs.predict(x)
+    out = _scores(t, p)
+    worst = int(np.argmax(np.abs(p - t) / t))
+    s = sets[which[worst]]
+    out["worst"] = {"set": s.name, "n": int(ns[worst]), "measured": float(t[worst]),
+                    "predicted": float(p[worst])}
+    out["per_set"] = {}
+    for i, s in enumerate(sets):
+        sel = which == i
+        out["per_set"][s.name] = {"leaf_size": s.meta.get("leaf_size"),
+                                  "radius": s.meta.get("radius"),
+                                  "radius_fraction": s.meta.get("radius_fraction"),
+                                  **_scores(t[sel], p[sel])}
+    out["per_n"] = {int(n): {"measured": float(np.median(t[ns == n])),
+                             "predicted": float(np.median(p[ns == n]))}
+                    for n in np.unique(ns)}
+    return out
+
+
+def goal(fit_: Fit, prediction: dict) -> dict:
+    """Whether a cross-scene prediction meets :data:`GOAL` (R^2, largest relative error) with
+    every cost positive."""
+    met = {"r2": prediction["r2"] >= GOAL["r2"],
+           "max_rel_error": prediction["max_rel_error"] <= GOAL["max_rel_error"],
+           "all_positive": fit_.all_positive}
+    return {**met, "met": all(met.values())}
+
+
+def cross_check(a, b, name_a: str = "a", name_b: str = "b", weighting: str = "relative",
+                resamples: int = 400, seed: int = 0) -> dict:
+    """Fit on ``a``, predict ``b``, and the other way round (each a workload, a set or a
+    list of them): both fits (:meth:`Fit.as_dict`), both predictions (:func:`check`) and
+    whether each meets :data:`GOAL`."""
+    out = {"scenes": [name_a, name_b], "goal": dict(GOAL), "directions": []}
+    for (fn, fd), (pn, pd) in (((name_a, a), (name_b, b)), ((name_b, b), (name_a, a))):
+        f = calibrate(fd, weighting, resamples, seed)
+        pred = check(f.costs, pd)
+        out["directions"].append({"fit_on": fn, "predicts": pn, "fit": f.as_dict(),
+                                  "prediction": pred, "goal": goal(f, pred)})
+    return out
+
+
+# ----------------------------------------------------------------------- the costs file
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, int):
+        return str(v)
+    return repr(float(v))
+
+
+def write_costs(path, fit_: Fit, *, scene: str, threads: int | None, source: str = ""):
+    """Write ``fit_``'s costs as the file ``[pe] fitted_costs`` names (TOML): seconds per
+    node, test, found and map run as measured with ``threads`` CPU threads, their standard
+    errors and intervals, and where they come from."""
+    from pathlib import Path
+    c = fit_.costs
+    lines = ["# Costs fitted by hwsim.calibrate to measured per-map CPU times (partpm "
+             "calibrate).",
+             "# hwsim's [pe] costs = \"fitted\" reads them: cycles per node / test / found =",
+             "# seconds x threads x clock_hz (a PE as fast as one measured CPU thread), cycles",
+             "# per map = seconds_per_map x clock_hz (the host's serial cost of a map run).",
+             f"scene = {_toml_value(scene)}",
+             f"source = {_toml_value(source)}",
+             f"threads = {int(threads) if threads else 1}",
+             f"weighting = {_toml_value(fit_.weighting)}",
+             f"rows = {fit_.rows}",
+             f"sets = {fit_.sets}",
+             f"all_positive = {_toml_value(fit_.all_positive)}",
+             f"seconds_per_node = {_toml_value(c.per_node)}",
+             f"seconds_per_test = {_toml_value(c.per_test)}",
+             f"seconds_per_found = {_toml_value(c.per_found)}",
+             f"seconds_per_map = {_toml_value(c.fixed)}",
+             "", "[standard_error]                # seconds; absent for a cost fitted to 0"]
+    for name in COST_NAMES:
+        se = fit_.standard_errors.get(name)
+        if se is not None:
+            lines.append(f"{_FILE_KEYS[name]} = {_toml_value(se)}")
+    lines += ["", "[interval]                      # bootstrap 2.5 and 97.5 percentiles"]
+    for name in COST_NAMES:
+        lo, hi = fit_.intervals[name]
+        if lo == lo and hi == hi:
+            lines.append(f"{_FILE_KEYS[name]} = [{_toml_value(lo)}, {_toml_value(hi)}]")
+    Path(path).write_text("\n".join(lines) + "\n")
+    return Path(path)
+
+
+#: Cost name -> its key in the costs file.
+_FILE_KEYS = {"per_node": "seconds_per_node", "per_test": "seconds_per_test",
+              "per_found": "seconds_per_found", "fixed": "seconds_per_map"}
+
+
+def read_costs(path) -> dict:
+    """The costs file of :func:`write_costs`: ``{"seconds_per_node", "seconds_per_test",
+    "seconds_per_found", "seconds_per_map": float >= 0, "threads": int >= 1, "scene": str}``.
+    Raises ValueError naming the file and the key that is missing or wrong."""
+    import tomllib
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except OSError as e:
+        raise ValueError(f"fitted costs file {path}: {e.strerror or e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"fitted costs file {path} is not TOML: {e}") from None
+    out = {"scene": str(data.get("scene", "")), "source": str(data.get("source", ""))}
+    for key in _FILE_KEYS.values():
+        v = data.get(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
+                or v < 0:
+            raise ValueError(f"fitted costs file {path}: {key} must be a finite number >= 0 "
+                             f"(seconds), got {v!r}")
+        out[key] = float(v)
+    threads = data.get("threads", 1)
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"fitted costs file {path}: threads must be an integer >= 1, got "
+                         f"{threads!r}")
+    out["threads"] = threads
+    return out
+
+
+# ----------------------------------------------------------------------------- text
+
+def _ns(v):
+    return "n/a" if v is None or v != v else f"{v * 1e9:.3g}"
+
+
+def format_fit(f: dict, scene: str = "") -> list:
+    """Lines: the design's conditioning, each cost with its standard error and interval, the
+    costs fitted to 0, and the fit's errors on its own rows (``f``: :meth:`Fit.as_dict`)."""
+    d = f["design"]
+    corr = d["correlation"]
+    lines = [f"design{' of ' + scene if scene else ''}: {f['rows']} maps in {f['sets']} "
+             f"set{'s' if f['sets'] != 1 else ''}; correlation nodes-tests "
+             f"{corr[0][1]:.3f}, nodes-found {corr[0][2]:.3f}, tests-found {corr[1][2]:.3f}; "
+             f"VIF " + ", ".join(f"{k} {v:.1f}" for k, v in d["vif"].items()) +
+             f"; condition number {d['condition_number']:.3g}"]
+    unit = {"per_node": "ns/node", "per_test": "ns/test", "per_found": "ns/found"}
+    for name in COST_NAMES:
+        c, se = f["costs"][name], f["standard_errors"].get(name)
+        lo, hi = f["intervals"][name]
+        if name == "fixed":
+            text = (f"  per map run: {c * 1e3:.3g} ms (se {se * 1e3:.2g} ms, 95% "
+                    f"{lo * 1e3:.3g}-{hi * 1e3:.3g} ms)" if se is not None else
+                    f"  per map run: {c * 1e3:.3g} ms (95% {lo * 1e3:.3g}-{hi * 1e3:.3g} ms)")
+        else:
+            text = (f"  {unit[name]}: {_ns(c)} (se {_ns(se)}, 95% {_ns(lo)}-{_ns(hi)})")
+        if name in f["zero"]:
+            text += "  FITTED TO 0: not identified by these workloads"
+        elif f["zero_share"].get(name, 0) > 0.025:
+            text += f"  (0 in {f['zero_share'][name] * 100:.0f}% of the bootstrap fits)"
+        lines.append(text)
+    s = f["self"]
+    lines.append(f"  on its own maps ({f['weighting']} weighting): R^2 {s['r2']:.4f}, largest "
+                 f"error {s['max_rel_error'] * 100:.1f}%, median "
+                 f"{s['median_rel_error'] * 100:.1f}%")
+    return lines
+
+
+def format_check(pred: dict, indent: str = "  ") -> list:
+    """Lines: per set, R^2 and the largest, median and signed median relative error."""
+    lines = [f"{indent}{'set':<18} {'leaf':>5} {'r':>8} {'maps':>5} {'R^2':>7} "
+             f"{'largest':>8} {'median':>7} {'bias':>7}"]
+    for name, s in pred["per_set"].items():
+        r = s.get("radius")
+        lines.append(f"{indent}{name:<18} {str(s.get('leaf_size') or '-'):>5} "
+                     f"{(f'{r:.4g}' if r is not None else '-'):>8} {s['maps']:5d} "
+                     f"{s['r2']:7.3f} {s['max_rel_error'] * 100:7.1f}% "
+                     f"{s['median_rel_error'] * 100:6.1f}% {s['bias'] * 100:+6.1f}%")
+    w = pred["worst"]
+    lines.append(f"{indent}worst map: {w['set']}, n = {w['n']}: measured "
+                 f"{w['measured'] * 1e3:.1f} ms, predicted {w['predicted'] * 1e3:.1f} ms")
+    return lines
+
+
+def format_cross(cross: dict) -> str:
+    """The cross-scene check as text: per direction the fit, the prediction per set and
+    whether it meets :data:`GOAL`."""
+    g = cross["goal"]
+    lines = [f"cross-scene check (goal: R^2 >= {g['r2']}, largest error <= "
+             f"{g['max_rel_error'] * 100:.0f}%, every cost > 0)"]
+    for d in cross["directions"]:
+        p, ok = d["prediction"], d["goal"]
+        lines.append(f"fitted on {d['fit_on']}, predicts {d['predicts']}: R^2 {p['r2']:.3f}, "
+                     f"largest error {p['max_rel_error'] * 100:.1f}%, median "
+                     f"{p['median_rel_error'] * 100:.1f}%: goal "
+                     f"{'met' if ok['met'] else 'NOT met'} (R^2 {'ok' if ok['r2'] else 'no'}, "
+                     f"largest error {'ok' if ok['max_rel_error'] else 'no'}, costs "
+                     f"{'all > 0' if ok['all_positive'] else 'some 0'})")
+        lines += format_fit(d["fit"], d["fit_on"])
+        lines += format_check(p)
+    return "\n".join(lines)
 
 
 def synthetic_workloads(maps=(1, 2, 4, 8), queries=500, photons=20_000, seed=0,
@@ -79,7 +477,6 @@ def synthetic_workloads(maps=(1, 2, 4, 8), queries=500, photons=20_000, seed=0,
     maps get sparser, as measured. ``map_seconds`` follow ``costs`` (per node, test, found,
     fixed) with optional relative noise.
     """
-    from .workload import MapWorkloads
     rng = np.random.default_rng(seed)
     found1 = rng.gamma(4.0, 40.0, queries)
     loads = {}

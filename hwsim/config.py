@@ -11,11 +11,17 @@ TOML layout (every key optional)::
     cycles_per_node = 4            # per kd-tree node visited
     cycles_per_test = 3            # per photon distance test
     cycles_per_accumulate = 2      # per photon found (f_r * power added)
+    cycles_per_map = 0             # per map run on a PE (its set-up), before its first tile
     outstanding_queries = 4        # queries in flight per PE (hides DRAM latency)
     bytes_per_result = 12          # one partial radiance (RGB float32)
     gather_schedule = "after"      # "after" the queries, or "tiles" overlapped with them
     tile_queries = 4096            # queries per tile: the unit in which a PE overlaps memory
                                    # with compute, and which the "tiles" gather sends
+
+    [pe]                           # where the four compute costs come from
+    costs = "assumed"              # "assumed": the cycles_per_* keys above; "fitted": from
+                                   # fitted_costs, a file 'partpm calibrate' writes
+    fitted_costs = ""              # with "fitted": that file (relative to this TOML file)
 
     [memory]
     sram_bytes = 2097152           # local SRAM per PE, shared by its maps; what does not fit
@@ -40,6 +46,16 @@ TOML layout (every key optional)::
     pj_per_link_byte = 1           # a byte over one hop of the gather network
     pj_per_add = 2.7               # one partial result (3 floats) added in the gather
     static_watts_per_pe = 0.05     # leakage and clock of one PE while the frame lasts
+
+**Assumed or fitted compute costs** (``[pe] costs``). "assumed" runs the model on
+``cycles_per_node``, ``cycles_per_test``, ``cycles_per_accumulate`` and ``cycles_per_map``.
+"fitted" runs it on the costs :mod:`hwsim.calibrate` fitted to measured CPU times (the file
+``fitted_costs``, see :func:`hwsim.calibrate.write_costs`), converted by one rule: **a PE as
+fast as one measured CPU thread**. Cycles per node, test and found photon = CPU seconds per
+action x the threads that measured them x ``clock_hz`` (the CPU's wall time per action times
+its threads is one thread's time per action); cycles per map = CPU seconds per map run x
+``clock_hz`` (the host records and launches a map's kernel in one thread). A config that
+sets ``costs = "fitted"`` may not also set the ``cycles_per_*`` keys (they would be ignored).
 """
 from __future__ import annotations
 
@@ -48,10 +64,14 @@ from dataclasses import dataclass, field, fields, replace
 
 from .networks import TOPOLOGIES
 
-__all__ = ["MemoryConfig", "GatherConfig", "EnergyConfig", "HardwareConfig", "load_config",
-           "TOPOLOGIES"]
+__all__ = ["MemoryConfig", "GatherConfig", "EnergyConfig", "PEConfig", "HardwareConfig",
+           "load_config", "TOPOLOGIES", "COST_SOURCES", "CYCLE_KEYS"]
 
 SCHEDULES = ("after", "tiles")
+#: Where the PE's compute costs come from (``[pe] costs``).
+COST_SOURCES = ("assumed", "fitted")
+#: The assumed compute costs, which ``[pe] costs = "fitted"`` replaces.
+CYCLE_KEYS = ("cycles_per_node", "cycles_per_test", "cycles_per_accumulate", "cycles_per_map")
 
 
 def _check_number(owner, name, value, low=0.0, low_open=True, integer=False):
@@ -137,6 +157,59 @@ class EnergyConfig:
 
 
 @dataclass(frozen=True)
+class PEConfig:
+    """Where a PE's compute costs come from: ``costs`` "assumed" (the ``cycles_per_*`` of
+    :class:`HardwareConfig`) or "fitted" (``fitted_costs``, the file of
+    :func:`hwsim.calibrate.write_costs`, read by :func:`load_config` into the ``seconds_*``
+    fields and ``threads``: CPU seconds per action as measured with that many threads)."""
+
+    costs: str = "assumed"
+    fitted_costs: str = ""
+    seconds_per_node: float = 0.0
+    seconds_per_test: float = 0.0
+    seconds_per_found: float = 0.0
+    seconds_per_map: float = 0.0
+    threads: int = 1
+    fitted_scene: str = ""
+
+    def __post_init__(self):
+        if self.costs not in COST_SOURCES:
+            raise ValueError(f"pe.costs must be one of {', '.join(COST_SOURCES)}, got "
+                             f"{self.costs!r}")
+        if not isinstance(self.fitted_costs, str):
+            raise ValueError(f"pe.fitted_costs must be a file name (a string), got "
+                             f"{self.fitted_costs!r}")
+        if self.costs == "fitted" and not self.fitted_costs:
+            raise ValueError('pe.costs = "fitted" needs pe.fitted_costs: the costs file '
+                             "'partpm calibrate' writes (fitted_costs.toml)")
+        seconds = ("seconds_per_node", "seconds_per_test", "seconds_per_found",
+                   "seconds_per_map")
+        for name in seconds:
+            _check_number("pe", name, getattr(self, name), 0, low_open=False)
+        _check_number("pe", "threads", self.threads, 1, low_open=False, integer=True)
+        if self.costs == "fitted" and not any(getattr(self, name) for name in seconds):
+            raise ValueError(f'pe.costs = "fitted" with no fitted cost: read '
+                             f"{self.fitted_costs} with PEConfig.from_file or load_config")
+
+    @classmethod
+    def from_file(cls, path) -> "PEConfig":
+        """Fitted costs from the file of :func:`hwsim.calibrate.write_costs`."""
+        from pathlib import Path
+
+        from .calibrate import read_costs
+        if not Path(path).is_file():
+            raise ValueError(f"pe.fitted_costs: {path} is not a file (write one with 'partpm "
+                             f"calibrate SCENE --out DIR': DIR/fitted_costs.toml)")
+        c = read_costs(path)
+        return cls(costs="fitted", fitted_costs=str(path),
+                   seconds_per_node=c["seconds_per_node"],
+                   seconds_per_test=c["seconds_per_test"],
+                   seconds_per_found=c["seconds_per_found"],
+                   seconds_per_map=c["seconds_per_map"], threads=c["threads"],
+                   fitted_scene=c["scene"])
+
+
+@dataclass(frozen=True)
 class HardwareConfig:
     """A PE array: every PE holds whole maps and answers every query on them."""
 
@@ -145,6 +218,7 @@ class HardwareConfig:
     cycles_per_node: float = 4.0
     cycles_per_test: float = 3.0
     cycles_per_accumulate: float = 2.0
+    cycles_per_map: float = 0.0
     outstanding_queries: int = 4
     bytes_per_result: int = 12
     gather_schedule: str = "after"
@@ -152,11 +226,12 @@ class HardwareConfig:
     memory: MemoryConfig = field(default_factory=MemoryConfig)
     gather: GatherConfig = field(default_factory=GatherConfig)
     energy: EnergyConfig = field(default_factory=EnergyConfig)
+    pe: PEConfig = field(default_factory=PEConfig)
 
     def __post_init__(self):
         _check_number("", "pe_count", self.pe_count, 1, low_open=False, integer=True)
         _check_number("", "clock_hz", self.clock_hz)
-        for name in ("cycles_per_node", "cycles_per_test", "cycles_per_accumulate"):
+        for name in CYCLE_KEYS:
             _check_number("", name, getattr(self, name), 0, low_open=False)
         _check_number("", "outstanding_queries", self.outstanding_queries, 1, low_open=False,
                       integer=True)
@@ -166,9 +241,24 @@ class HardwareConfig:
                              f"{self.gather_schedule!r}")
         _check_number("", "tile_queries", self.tile_queries, 1, low_open=False, integer=True)
 
+    def compute_cycles(self) -> dict:
+        """The compute costs the model runs on, in cycles: ``{"node", "test", "found",
+        "map"}``, and ``"source"``, "assumed" or "fitted" (converted as the module says: a
+        PE as fast as one measured CPU thread)."""
+        if self.pe.costs == "fitted":
+            per_action = self.pe.threads * self.clock_hz
+            return {"source": "fitted", "node": self.pe.seconds_per_node * per_action,
+                    "test": self.pe.seconds_per_test * per_action,
+                    "found": self.pe.seconds_per_found * per_action,
+                    "map": self.pe.seconds_per_map * self.clock_hz}
+        return {"source": "assumed", "node": self.cycles_per_node,
+                "test": self.cycles_per_test, "found": self.cycles_per_accumulate,
+                "map": self.cycles_per_map}
+
     def with_(self, **changes) -> "HardwareConfig":
-        """A copy with some fields changed (``memory``/``gather``/``energy`` fields as dicts)."""
-        for key in ("memory", "gather", "energy"):
+        """A copy with some fields changed (``memory``/``gather``/``energy``/``pe`` fields as
+        dicts)."""
+        for key in ("memory", "gather", "energy", "pe"):
             if isinstance(changes.get(key), dict):
                 changes[key] = replace(getattr(self, key), **changes[key])
         return replace(self, **changes)
@@ -183,8 +273,33 @@ def _from_dict(cls, data: dict, where: str):
     return data
 
 
+#: The keys of ``[pe]`` a TOML file may set (the rest are read from ``fitted_costs``).
+PE_KEYS = ("costs", "fitted_costs")
+
+
+def _pe_from_dict(data: dict, base) -> PEConfig:
+    """``[pe]``: with ``costs = "fitted"``, the costs file read (its name relative to
+    ``base``, the TOML file's directory, or the working directory)."""
+    from pathlib import Path
+    unknown = sorted(set(data) - set(PE_KEYS))
+    if unknown:
+        raise ValueError(f"unknown key{'s' if len(unknown) > 1 else ''} in [pe]: "
+                         f"{', '.join(unknown)} (known: {', '.join(PE_KEYS)})")
+    if data.get("costs", "assumed") != "fitted":
+        return PEConfig(**data)
+    if not isinstance(data.get("fitted_costs"), str) or not data["fitted_costs"]:
+        return PEConfig(**data)                  # raises: "fitted" needs a file name
+    path = Path(data["fitted_costs"])
+    if not path.is_absolute() and base is not None:
+        path = Path(base) / path
+    return PEConfig.from_file(path)
+
+
 def load_config(path=None, **overrides) -> HardwareConfig:
-    """A :class:`HardwareConfig` from a TOML file (defaults for what it leaves out)."""
+    """A :class:`HardwareConfig` from a TOML file (defaults for what it leaves out). With
+    ``[pe] costs = "fitted"`` the costs file is read now (its name relative to the TOML
+    file), and the ``cycles_per_*`` keys may not be set."""
+    from pathlib import Path
     data = {}
     if path is not None:
         import tomllib
@@ -194,6 +309,16 @@ def load_config(path=None, **overrides) -> HardwareConfig:
     memory = _from_dict(MemoryConfig, dict(data.pop("memory", {})), "[memory]")
     gather = _from_dict(GatherConfig, dict(data.pop("gather", {})), "[gather]")
     energy = _from_dict(EnergyConfig, dict(data.pop("energy", {})), "[energy]")
+    pe = data.pop("pe", {})
+    if not isinstance(pe, dict):
+        raise ValueError(f"pe must be a table, [pe] with costs and fitted_costs, got {pe!r}")
+    pe = _pe_from_dict(dict(pe), Path(path).parent if path else None)
     top = _from_dict(HardwareConfig, data, "the top level")
+    if pe.costs == "fitted":
+        clash = [k for k in CYCLE_KEYS if k in top]
+        if clash:
+            raise ValueError(f'[pe] costs = "fitted" takes the compute costs from '
+                             f"{pe.fitted_costs}: leave out {', '.join(clash)} (or set "
+                             f'costs = "assumed")')
     return HardwareConfig(**top, memory=MemoryConfig(**memory), gather=GatherConfig(**gather),
-                          energy=EnergyConfig(**energy))
+                          energy=EnergyConfig(**energy), pe=pe)

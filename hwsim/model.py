@@ -9,6 +9,8 @@ DRAM in every tile (:func:`hwsim.work.sram_resident`). For map m and tile k:
 
     compute  c_mk = sum_{q in k} nodes_q * cycles_per_node + tested_q * cycles_per_test
                                  + found_q * cycles_per_accumulate
+                    (+ cycles_per_map in the map's first tile k = 0); the four costs are
+                    assumed, or fitted to measured CPU times ([pe] costs, hwsim.config)
     memory   0 if the map is resident in its PE's SRAM, else the larger of
              bandwidth  bursts(bytes_mk) / dram_bytes_per_cycle
              latency    sum_{q in k} nodes_q * dram_latency_cycles / outstanding_queries

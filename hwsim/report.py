@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import HardwareConfig
+from .config import CYCLE_KEYS, HardwareConfig
 from .model import simulate
 from .networks import SWEEP
 from .workload import load_workloads
@@ -50,7 +50,9 @@ def _scaled(config, name, factor):
 def sensitivity(config, loads, factors=(0.5, 2.0)) -> list:
     """Each assumed constant times 0.5 and 2: the speedup at the largest n (with the gather,
     one PE per map), the gather's share of the frame and the energy of a frame at the largest
-    n over that at the smallest, against the unchanged config."""
+    n over that at the smallest, against the unchanged config. With fitted compute costs
+    (``[pe] costs = "fitted"``) the ``cycles_per_*`` constants are not assumed, and not
+    swept."""
     ns = sorted(loads)
     first, last = ns[0], ns[-1]
 
@@ -61,7 +63,8 @@ def sensitivity(config, loads, factors=(0.5, 2.0)) -> list:
                 "energy_ratio": b.energy_joules / a.energy_joules,
                 "dram_bytes": _dram_bytes(b), "dram_bytes_smallest_n": _dram_bytes(a)}
     rows = [{"constant": "(as configured)", "factor": 1.0, **measure(config)}]
-    for name in ASSUMED:
+    fitted = config.pe.costs == "fitted"
+    for name in (n for n in ASSUMED if not (fitted and n in CYCLE_KEYS)):
         for f in factors:
             rows.append({"constant": name, "factor": f, **measure(_scaled(config, name, f))})
     return rows
@@ -101,22 +104,43 @@ def _saturation(points) -> int:
 
 
 def calibration(loads, meta, check_dir=None) -> dict:
-    """Fit CPU costs to this workload's measured per-map times (:mod:`hwsim.calibrate`) and
-    check them on itself and, given ``check_dir``, on another scene's workloads."""
-    from .calibrate import check, fit
+    """Fit CPU costs to this workload's measured per-map times (:func:`hwsim.calibrate.
+    calibrate`: costs, standard errors, bootstrap intervals, the costs fitted to 0 and the
+    design's conditioning) and check them on itself and, given ``check_dir`` (another
+    scene's workloads, or its calibration sets), on that. One speedup run varies nodes,
+    tests and found photons together: its ``design`` says how collinear they are, and
+    ``zero`` which costs it could not identify (``partpm calibrate`` records the sets that
+    can)."""
+    from .calibrate import calibrate, check
+    from .workload import load_workload_sets
     if any(w.map_seconds.size == 0 for w in loads.values()):
         return {}
     maps = sum(w.n for w in loads.values())
     if maps < 5:
         return {"skipped": f"needs >= 5 measured maps for its 4 costs, the "
                            f"workloads hold {maps}"}
-    costs = fit(loads)
-    out = {"fit_on": meta.get("scene", ""), "costs": costs.__dict__,
-           "self": check(costs, loads)}
+    f = calibrate(loads)
+    out = {"fit_on": meta.get("scene", ""), **f.as_dict()}
     if check_dir is not None:
-        other_meta, other = load_workloads(check_dir)
-        out["other_scene"] = other_meta.get("scene", str(check_dir))
-        out["other"] = check(costs, other)
+        other_index, other = load_workload_sets(check_dir)
+        out["other_scene"] = other_index.get("scene", str(check_dir))
+        out["other"] = check(f.costs, other)
+    return out
+
+
+def pe_costs(config) -> dict:
+    """The compute costs the model ran on: cycles per node, test, found photon and map run,
+    "assumed" or "fitted" (and then the file, its scene and the conversion rule)."""
+    c = config.compute_cycles()
+    out = {"source": c["source"], "cycles_per_node": c["node"], "cycles_per_test": c["test"],
+           "cycles_per_found": c["found"], "cycles_per_map": c["map"]}
+    if c["source"] == "fitted":
+        pe = config.pe
+        out.update(fitted_costs=pe.fitted_costs, fitted_scene=pe.fitted_scene,
+                   threads=pe.threads,
+                   rule="a PE as fast as one measured CPU thread: cycles per node / test / "
+                        "found = CPU seconds per action x threads x clock_hz; cycles per "
+                        "map = CPU seconds per map run x clock_hz")
     return out
 
 
@@ -159,6 +183,7 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
             for ch in CONTENTION_CHANNELS},
         "sensitivity": sens, "calibration": calibration(loads, meta, check_dir),
         "largest_n": detail.as_dict()}
+    result["pe_costs"] = pe_costs(config)
     _write(out, result)
     _plots(rows, sweep, contention, detail, out, meta.get("scene", ""))
     return result
@@ -307,7 +332,8 @@ def format_report(result) -> str:
     for shared DRAM, the calibration and the sensitivity sweep. Every table row and line gives
     the frame's DRAM traffic (MB read per frame, over all PEs)."""
     n = result["largest_n"]["map_count"]
-    lines = _format_rows(result["rows"]) + _format_sweep(result, n)
+    lines = ([_format_pe_costs(result["pe_costs"])] if result.get("pe_costs") else []) + \
+        _format_rows(result["rows"]) + _format_sweep(result, n)
     if result.get("contention"):
         lines.append(_format_contention(result, n))
     cal = result.get("calibration")
@@ -371,6 +397,16 @@ def _format_contention(result, n) -> str:
             f"{'; '.join(parts)}")
 
 
+def _format_pe_costs(c) -> str:
+    text = (f"PE compute costs ({c['source']}): {c['cycles_per_node']:.3g} cycles/node, "
+            f"{c['cycles_per_test']:.3g}/test, {c['cycles_per_found']:.3g}/found, "
+            f"{c['cycles_per_map']:.3g}/map run")
+    if c["source"] == "fitted":
+        text += (f", fitted on {c['fitted_scene'] or '?'} ({c['fitted_costs']}, "
+                 f"{c['threads']} CPU thread{'s' if c['threads'] != 1 else ''}; {c['rule']})")
+    return text
+
+
 def _format_calibration(cal) -> str:
     if "skipped" in cal:
         return f"calibration skipped: {cal['skipped']}"
@@ -383,6 +419,18 @@ def _format_calibration(cal) -> str:
     if "other" in cal:
         text += (f"; predicts {cal['other_scene']} with R^2 {cal['other']['r2']:.3f} "
                  f"(largest error {cal['other']['max_rel_error'] * 100:.0f}%)")
+    if "design" in cal:
+        d = cal["design"]
+        text += (f"; design: largest VIF {max(d['vif'].values()):.3g}, condition number "
+                 f"{d['condition_number']:.3g}")
+        weak = [k for k, (low, _) in cal["intervals"].items() if not low > 0]
+        if cal.get("zero"):
+            text += f"; fitted to 0: {', '.join(cal['zero'])}"
+        elif weak:
+            text += f"; 95% interval reaches 0: {', '.join(weak)}"
+        if cal.get("zero") or weak:
+            text += ("; one run does not tell the costs apart ('partpm calibrate' records "
+                     "sets that do)")
     return text
 
 

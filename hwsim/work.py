@@ -103,11 +103,15 @@ def sram_resident(map_bytes, pes: int, sram_bytes: int) -> np.ndarray:
 def tile_work(config: HardwareConfig, workload) -> TileWork:
     """Per map and tile: compute cycles and the memory demand of the maps that are not
     resident in their PE's SRAM (:func:`sram_resident` on ``config.pe_count`` PEs; the bytes
-    of a node and of a photon record are the workload's)."""
+    of a node and of a photon record are the workload's). Compute is the counts times the
+    cycles of :meth:`HardwareConfig.compute_cycles` (assumed or fitted), and a map's
+    per-map cycles in its first tile."""
     bytes_per_node, bytes_per_photon = workload.bytes_per_node, workload.bytes_per_photon
     nodes, tested, found, sizes = workload.tile_counts(config.tile_queries)
-    compute = (nodes * config.cycles_per_node + tested * config.cycles_per_test
-               + found * config.cycles_per_accumulate)
+    cycles = config.compute_cycles()
+    compute = nodes * cycles["node"] + tested * cycles["test"] + found * cycles["found"]
+    if cycles["map"] and compute.shape[1]:
+        compute[:, 0] += cycles["map"]          # a map's set-up, before its first tile
     mem = config.memory
     in_sram = sram_resident(workload.map_bytes, config.pe_count, mem.sram_bytes)
     touched = nodes * bytes_per_node + tested * POSITION_BYTES + \

@@ -1,6 +1,12 @@
-"""The per-map workloads that ``partpm speedup`` records and hwsim replays (format:
-WORKLOAD.md). This module is the format's one owner: the recorder writes it with
-:func:`save_workloads`, hwsim reads it with :func:`load_workloads`.
+"""The per-map workloads that ``partpm speedup`` and ``partpm calibrate`` record and hwsim
+replays (format: WORKLOAD.md). This module is the format's one owner: the recorders write a
+workloads directory with :func:`save_workloads` and a directory of calibration sets (one
+workloads directory per leaf size and radius) with :func:`save_workload_sets`; hwsim reads
+them with :func:`load_workloads` and :func:`load_workload_sets`.
+
+Version 2 adds, in ``meta.json``, the radius as a fraction of the scene (``radius_fraction``)
+and the CPU threads the times were measured with (``threads``); version 1 files still load
+(those keys then read as null).
 
 NumPy and JSON only: hwsim never imports Mitsuba.
 """
@@ -12,9 +18,16 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MapWorkloads", "load_workloads", "save_workloads", "FORMAT_VERSION"]
+__all__ = ["MapWorkloads", "WorkloadSet", "load_workloads", "save_workloads",
+           "load_workload_sets", "save_workload_sets", "set_name", "FORMAT_VERSION",
+           "READS_VERSIONS", "SETS_FILE"]
 
-FORMAT_VERSION = 1
+#: The version written.
+FORMAT_VERSION = 2
+#: The versions read: 1 lacks ``radius_fraction`` and ``threads`` (read as None).
+READS_VERSIONS = (1, 2)
+#: The index of a directory of calibration sets.
+SETS_FILE = "sets.json"
 
 
 @dataclass
@@ -66,9 +79,11 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
         raise ValueError(f"{meta_path} is missing: is {d} a workloads directory written by "
                          f"'partpm speedup'?")
     meta = json.loads(meta_path.read_text())
-    if meta.get("version") != FORMAT_VERSION:
+    if meta.get("version") not in READS_VERSIONS:
         raise ValueError(f"{meta_path}: format version {meta.get('version')!r}, this hwsim "
-                         f"reads version {FORMAT_VERSION}")
+                         f"reads versions {', '.join(map(str, READS_VERSIONS))}")
+    for key in ("radius_fraction", "threads", "leaf_size"):
+        meta.setdefault(key, None)
     loads = {}
     for n_text, name in meta["files"].items():
         n = int(n_text)
@@ -88,9 +103,12 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
 
 def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: float = 0.0,
                    photons_emitted: int = 0, photons_stored: int | None = None,
-                   leaf_size: int | None = None) -> Path:
+                   leaf_size: int | None = None, radius_fraction: float | None = None,
+                   threads: int | None = None) -> Path:
     """Write ``{n: MapWorkloads}`` in the WORKLOAD.md format. The bytes of a photon record
-    and of a tree node are the workloads' own (the same for every n)."""
+    and of a tree node are the workloads' own (the same for every n). ``radius_fraction``:
+    the radius over the scene's longest side; ``threads``: the CPU threads that measured
+    ``map_seconds`` (None: unknown, or not measured)."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     queries = {w.queries for w in loads.values()}
@@ -105,6 +123,7 @@ def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: 
     info = {"version": FORMAT_VERSION, "scene": scene, "queries": queries.pop(),
             "radius": radius, "photons_emitted": photons_emitted,
             "photons_stored": photons_stored, "leaf_size": leaf_size,
+            "radius_fraction": radius_fraction, "threads": threads,
             "bytes_per_photon": int(bytes_per_photon), "bytes_per_node": int(bytes_per_node),
             "maps": sorted(loads), "files": {str(n): f"n{n}.npz" for n in sorted(loads)}}
     for n, w in loads.items():
@@ -114,3 +133,83 @@ def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: 
                             map_seconds=w.map_seconds, version=np.int64(FORMAT_VERSION))
     (d / "meta.json").write_text(json.dumps(info, indent=2) + "\n")
     return d
+
+
+@dataclass
+class WorkloadSet:
+    """One calibration set: the workloads of every n at one leaf size and one radius."""
+
+    name: str                      # its folder in the sets directory, e.g. "leaf8_r0.025"
+    meta: dict                     # its meta.json (leaf_size, radius, radius_fraction, ...)
+    loads: dict                    # {n: MapWorkloads}
+
+    @property
+    def leaf_size(self):
+        return self.meta.get("leaf_size")
+
+    @property
+    def radius(self) -> float:
+        return float(self.meta.get("radius", 0.0))
+
+
+def set_name(leaf_size, radius_fraction) -> str:
+    """The folder of the set of ``leaf_size`` and ``radius_fraction``: ``leaf8_r0.025``."""
+    return f"leaf{leaf_size}_r{radius_fraction:g}"
+
+
+def save_workload_sets(directory, sets, *, scene: str, settings: dict | None = None) -> Path:
+    """Write calibration sets: every :class:`WorkloadSet` ``s`` (its ``meta`` holding at
+    least ``leaf_size``, ``radius`` and the keywords of :func:`save_workloads`) as a workloads
+    directory ``directory/s.name/``, and the index ``directory/sets.json`` (WORKLOAD.md):
+    the scene, ``settings`` (how the sets were measured) and per set its folder, leaf size,
+    radius and radius fraction."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    keys = ("radius", "photons_emitted", "photons_stored", "leaf_size", "radius_fraction",
+            "threads")
+    index = []
+    for s in sets:
+        save_workloads(d / s.name, s.loads, scene=scene,
+                       **{k: s.meta[k] for k in keys if k in s.meta})
+        index.append({"name": s.name, "leaf_size": s.meta.get("leaf_size"),
+                      "radius": s.meta.get("radius"),
+                      "radius_fraction": s.meta.get("radius_fraction"),
+                      "maps": sorted(s.loads)})
+    names = [s["name"] for s in index]
+    if len(set(names)) != len(names):
+        raise ValueError(f"calibration sets must have distinct names, got {names}")
+    (d / SETS_FILE).write_text(json.dumps(
+        {"version": FORMAT_VERSION, "scene": scene, "settings": settings or {},
+         "sets": index}, indent=2) + "\n")
+    return d
+
+
+def load_workload_sets(directory) -> tuple[dict, list[WorkloadSet]]:
+    """``(index, [WorkloadSet])`` from a directory of calibration sets (``sets.json``), or,
+    from a plain workloads directory (``meta.json``), that one workload as the only set.
+
+    Raises ValueError naming the file and what is wrong."""
+    d = Path(directory)
+    index_path = d / SETS_FILE
+    if not index_path.is_file():
+        if (d / "meta.json").is_file():
+            meta, loads = load_workloads(d)
+            return ({"scene": meta.get("scene", str(d)), "settings": {}, "sets": []},
+                    [WorkloadSet(d.name or "workloads", meta, loads)])
+        raise ValueError(f"{d} holds neither {SETS_FILE} (calibration sets written by "
+                         f"'partpm calibrate') nor meta.json (a workloads directory)")
+    index = json.loads(index_path.read_text())
+    if index.get("version") not in READS_VERSIONS:
+        raise ValueError(f"{index_path}: format version {index.get('version')!r}, this hwsim "
+                         f"reads versions {', '.join(map(str, READS_VERSIONS))}")
+    if not index.get("sets"):
+        raise ValueError(f"{index_path} lists no sets")
+    sets = []
+    for entry in index["sets"]:
+        meta, loads = load_workloads(d / entry["name"])
+        for key in ("leaf_size", "radius", "radius_fraction"):
+            if entry.get(key) != meta.get(key):
+                raise ValueError(f"{index_path}: set {entry['name']} has {key} "
+                                 f"{entry.get(key)!r}, its meta.json {meta.get(key)!r}")
+        sets.append(WorkloadSet(entry["name"], meta, loads))
+    return index, sets
