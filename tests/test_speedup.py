@@ -179,6 +179,16 @@ def test_calibrate_writes_sets_with_their_leaf_size_and_radius(tmp_path, capsys)
     d = again["check"]["directions"][0]
     assert d["prediction"]["r2"] == pytest.approx(again["fit"]["self"]["r2"])
     assert set(d["prediction"]["per_set"]) == {st.name for st in sets}
+    # The README's table: one row per direction, from the check's own figures.
+    from mi_partpm.experiments.calibrate import format_readme_table
+    table = format_readme_table(again).splitlines()
+    assert table[0].startswith("| fitted on | ns / node |") and len(table) == 4
+    cells = [c.strip() for c in table[2].split("|")[1:-1]]
+    assert cells[0] == cells[7] == "cornell_box_diffuse"
+    assert cells[8] == f"{d['prediction']['r2']:.3f}"
+    assert cells[11] == ("yes" if d["goal"]["met"] else "no")
+    with pytest.raises(ValueError, match="no cross-scene check"):
+        format_readme_table(saved)
 
 
 def test_calibrate_cli_errors(tmp_path, capsys):

@@ -8,6 +8,8 @@
     partpm bench [options]                       kd-tree and tracer against scipy, pykdtree
                                                  and Mitsuba's path tracer
     partpm hwsim WORKLOAD_DIR [options] --out DIR   the PE-array simulator
+    partpm calibrate SCENE [options] --out DIR   hwsim's costs fitted to per-map times at
+                                                 several leaf sizes and radii
     partpm scaling SCENE [options] --out DIR     strong scaling of the MPI backend
     partpm figures [--out DIR] [--only NAME,...] [--smoke] [--list]
                                                  every table and figure of the README and
@@ -24,8 +26,8 @@ import logging
 import sys
 
 from .common import UsageError, parse_resolution
-from .experiments import (run_bench, run_compare, run_converge, run_hwsim, run_scaling,
-                          run_speedup)
+from .experiments import (run_bench, run_calibrate, run_compare, run_converge, run_hwsim,
+                          run_scaling, run_speedup)
 from .figures import run_figures
 from .parser import build_parser
 from .render import format_ranks, run_render
@@ -35,7 +37,7 @@ __all__ = ["main", "parse_resolution", "format_ranks"]
 #: Subcommand -> the function that runs it.
 COMMANDS = {"render": run_render, "compare": run_compare, "speedup": run_speedup,
             "bench": run_bench, "hwsim": run_hwsim, "scaling": run_scaling,
-            "converge": run_converge, "figures": run_figures}
+            "converge": run_converge, "figures": run_figures, "calibrate": run_calibrate}
 
 
 def main(argv=None) -> int:

@@ -1,4 +1,5 @@
-"""The experiment subcommands: ``compare``, ``speedup``, ``bench``, ``hwsim``, ``scaling``.
+"""The experiment subcommands: ``compare``, ``speedup``, ``bench``, ``hwsim``, ``calibrate``,
+``scaling``.
 
 Each reads its options, calls the experiment in :mod:`mi_partpm.experiments` (or
 :mod:`hwsim.report`), prints its table and says what it wrote.
@@ -8,7 +9,7 @@ from __future__ import annotations
 from .common import UsageError, int_list, last_line, progress, setup
 
 __all__ = ["run_compare", "run_speedup", "run_bench", "run_hwsim", "run_scaling",
-           "run_converge"]
+           "run_converge", "run_calibrate"]
 
 
 def run_compare(args) -> int:
@@ -77,6 +78,37 @@ def run_speedup(args) -> int:
     if not args.quiet:
         print(format_speedup(result))
         print(f"wrote    {args.out}/speedup.csv, speedup.json, speedup.png and workloads/")
+    return 0
+
+
+def run_calibrate(args) -> int:
+    from ..experiments import calibrate as cal
+    if args.refit:
+        try:
+            result = cal.refit(args.out, args.check, progress=progress(args))
+        except (OSError, ValueError) as e:
+            raise UsageError(str(e)) from None
+    else:
+        if not args.scene:
+            raise UsageError("calibrate needs SCENE (or --refit to fit the sets in --out)")
+        setup(args)
+        try:
+            fracs = [float(v) for v in args.radius_fractions.split(",")]
+        except ValueError:
+            raise UsageError(f"--radius-fractions must be comma-separated numbers in (0, 1], "
+                             f"got {args.radius_fractions!r}") from None
+        try:
+            result = cal.run_calibration(
+                args.scene, args.out, int_list("--leaf-sizes", args.leaf_sizes), fracs,
+                int_list("--maps", args.maps), args.photons, args.resolution, args.spp,
+                args.repeats, args.threads, args.seed, args.data, args.check,
+                progress=progress(args))
+        except (FileNotFoundError, ValueError) as e:
+            raise UsageError(str(e)) from None
+    if not args.quiet:
+        print(cal.format_calibration(result))
+        print(f"wrote    {args.out}/calibration.json, fitted_costs.toml, hwsim_fitted.toml"
+              + ("" if args.refit else " and sets/"))
     return 0
 
 

@@ -183,10 +183,46 @@ def _experiment_options(sub):
     h.add_argument("--config", help="hardware configuration (TOML; every key, unit and default "
                                      "in hwsim/default.toml)")
     h.add_argument("--check", metavar="WORKLOAD_DIR",
-                   help="another scene's workloads: predict its measured per-map times with "
-                        "the costs calibrated on 'workloads'")
+                   help="another scene's workloads (or calibration sets, 'partpm calibrate' "
+                        "DIR/sets): predict its measured per-map times with the costs "
+                        "calibrated on 'workloads'")
     h.add_argument("--out", required=True, help="output directory (JSON, CSV, plots)")
     h.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+
+    k = sub.add_parser("calibrate", help="per-map times and counts at several leaf sizes and "
+                                         "radii; hwsim's costs fitted to them (the file "
+                                         "[pe] costs = \"fitted\" runs on)")
+    k.add_argument("scene", nargs="?", help="built-in scene name or Mitsuba XML file (not "
+                                            "with --refit)")
+    k.add_argument("--leaf-sizes", default="8,32,128",
+                   help="comma-separated kd-tree leaf sizes (default 8,32,128)")
+    k.add_argument("--radius-fractions", default="0.025,0.05,0.1",
+                   help="comma-separated radii over the scene's longest side (default "
+                        "0.025,0.05,0.1)")
+    k.add_argument("--maps", default="1,2,4,8,16,32",
+                   help="comma-separated map counts n (default 1,2,4,8,16,32)")
+    k.add_argument("--photons", type=positive_int("--photons"), default=100_000,
+                   help="photons emitted N (default 100000)")
+    k.add_argument("--resolution", type=parse_resolution, default=(240, 240),
+                   help="film size WxH (default 240x240)")
+    k.add_argument("--spp", type=positive_int("--spp"), default=1,
+                   help="samples per pixel (default 1)")
+    k.add_argument("--repeats", type=positive_int("--repeats"), default=3,
+                   help="timed runs of every map, interleaved over the sets; medians are "
+                        "fitted (default 3)")
+    k.add_argument("--threads", type=positive_int("--threads"), default=1,
+                   help="Dr.Jit threads of the timed kernels (default 1: one thread's costs)")
+    k.add_argument("--seed", type=int, default=0, help="photon seed (default 0)")
+    k.add_argument("--check", metavar="DIR",
+                   help="another scene's calibration (its --out): fit on each scene, predict "
+                        "the other's per-map times")
+    k.add_argument("--refit", action="store_true",
+                   help="fit the sets already in --out again (and --check), measure nothing")
+    k.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
+    k.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
+    k.add_argument("--out", required=True, help="output directory (sets/, calibration.json, "
+                                                "fitted_costs.toml, hwsim_fitted.toml)")
+    k.add_argument("-q", "--quiet", action="store_true", help="print only errors")
 
     m = sub.add_parser("scaling", help="strong scaling of the MPI backend over P ranks")
     m.add_argument("scene", help="built-in scene name or Mitsuba XML file")

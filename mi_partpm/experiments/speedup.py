@@ -44,7 +44,7 @@ from ..timing import timed
 from ..trace import trace_photons
 
 __all__ = ["run_speedup", "format_speedup", "plot_speedup", "gather_bound", "gather_excess",
-           "GatherError"]
+           "GatherError", "build_maps", "time_map", "map_counts", "map_workloads"]
 
 log = logging.getLogger("mi_partpm")
 
@@ -155,30 +155,54 @@ def _setup(scene_name, photons, streams, resolution, spp, radius_fraction, seed,
     return setup
 
 
-def _measure(s: _Setup, n: int, repeats: int):
-    """Time every map of n alone ``repeats`` times; record its traversal counts and its
-    partial estimates. Returns (maps, times (n, repeats), counts (3, n, Q), gathered (Q, 3))."""
-    maps = build_photon_maps(s.traced.with_maps(s.traced.maps % n, n))
+def build_maps(s: _Setup, n: int, leaf_size: int = LEAF_SIZE):
+    """The n maps of the experiment's photons (map j holds the streams i = j mod n)."""
+    return build_photon_maps(s.traced.with_maps(s.traced.maps % n, n), leaf_size=leaf_size)
 
-    def one_map(m):
-        # The hit points are already in Morton order (first_hits).
-        return radiance_estimate(maps, s.si, s.bsdf, s.radius, s.active, map_range=(m, m + 1),
-                                 order="given")
-    timed(lambda: one_map(0))     # warm-up: compile (one kernel for every map, opaque range)
-    times = np.zeros((n, repeats))
-    for rep in range(repeats):
-        for m in range(n):
-            times[m, rep] = timed(lambda: one_map(m))[1]
-    # Traversal counts and the partial estimates (untimed: a kernel with more outputs).
+
+def time_map(s: _Setup, maps, m: int, radius: float) -> float:
+    """Seconds of map ``m`` alone answering every hit point's query (what hwsim models: one
+    map, all queries), evaluated and synchronised. The hit points are already in Morton
+    order (first_hits)."""
+    return timed(lambda: radiance_estimate(maps, s.si, s.bsdf, radius, s.active,
+                                           map_range=(m, m + 1), order="given"))[1]
+
+
+def map_counts(s: _Setup, maps, radius: float):
+    """Traversal counts (3, n, Q) of every map and the sum of their partial estimates
+    (Q, 3), untimed (a kernel with more outputs)."""
+    n = maps.map_count
     counts = np.zeros((3, n, s.queries), dtype=np.uint32)
     gathered = np.zeros((s.queries, 3))
     for m in range(n):
-        L, stats = radiance_estimate(maps, s.si, s.bsdf, s.radius, s.active,
+        L, stats = radiance_estimate(maps, s.si, s.bsdf, radius, s.active,
                                      map_range=(m, m + 1), with_stats=True, order="given")
         dr.eval(L, stats.nodes_visited, stats.photons_tested, stats.photons_found)
         counts[:, m] = [stats.nodes_visited.numpy(), stats.photons_tested.numpy(),
                         stats.photons_found.numpy()]
         gathered += np.array(L, dtype=np.float64).reshape(3, -1).T
+    return counts, gathered
+
+
+def map_workloads(n: int, maps, times, counts) -> MapWorkloads:
+    """The workload of n maps: their counts, photons, bytes and measured times."""
+    return MapWorkloads(n=n, nodes_visited=counts[0], photons_tested=counts[1],
+                        photons_found=counts[2],
+                        map_photons=maps.forest.photon_count.astype(np.int64),
+                        map_bytes=maps.map_bytes.astype(np.int64), map_seconds=times,
+                        bytes_per_node=NODE_BYTES, bytes_per_photon=record_bytes())
+
+
+def _measure(s: _Setup, n: int, repeats: int):
+    """Time every map of n alone ``repeats`` times; record its traversal counts and its
+    partial estimates. Returns (maps, times (n, repeats), counts (3, n, Q), gathered (Q, 3))."""
+    maps = build_maps(s, n)
+    time_map(s, maps, 0, s.radius)   # warm-up: compile (one kernel for every map, opaque range)
+    times = np.zeros((n, repeats))
+    for rep in range(repeats):
+        for m in range(n):
+            times[m, rep] = time_map(s, maps, m, s.radius)
+    counts, gathered = map_counts(s, maps, s.radius)
     return maps, times, counts, gathered
 
 
@@ -231,11 +255,7 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
         say(f"n = {n:4d}: one map {row['per_map_seconds'] * 1e3:8.1f} ms, all {n} maps "
             f"{row['total_seconds']:6.2f} s; per query: {row['mean_nodes_visited']:.1f} nodes, "
             f"{row['mean_photons_tested']:.1f} tested, {row['mean_photons_found']:.1f} found")
-        loads[n] = MapWorkloads(n=n, nodes_visited=counts[0], photons_tested=counts[1],
-                                photons_found=counts[2],
-                                map_photons=maps.forest.photon_count.astype(np.int64),
-                                map_bytes=maps.map_bytes.astype(np.int64), map_seconds=times,
-                                bytes_per_node=NODE_BYTES, bytes_per_photon=record_bytes())
+        loads[n] = map_workloads(n, maps, times, counts)
         del maps
     _add_ratios(rows)
     result = {"scene": scene_name, "photons_emitted": photons,
@@ -246,7 +266,8 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
     if save_workload_files:
         save_workloads(out / "workloads", loads, scene=scene_name, radius=s.radius,
                        photons_emitted=photons, photons_stored=len(s.traced),
-                       leaf_size=LEAF_SIZE)
+                       leaf_size=LEAF_SIZE, radius_fraction=radius_fraction,
+                       threads=dr.thread_count())
     return result
 
 
