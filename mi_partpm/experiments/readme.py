@@ -290,35 +290,6 @@ def format_hwsim_networks(results: dict, scenes=("cornell_box", "happy_buddha"),
                   rows)
 
 
-def _size(speedup: dict) -> str:
-    ns = [r["n"] for r in speedup["rows"]]
-    w, h = speedup["resolution"]
-    reps = speedup["repeats"]
-    return f"{w} x {h}, n = {min(ns)}..{max(ns)}, {reps} repeat{'s' if reps != 1 else ''}"
-
-
-def format_calibration(results: dict, steps=("hwsim_cornell_box", "hwsim_happy_buddha",
-                                             "hwsim_wide_cornell_box")) -> str:
-    """hwsim's fit of the CPU costs and its check on the other scene (``calibration``)."""
-    rows = []
-    for step in steps:
-        cal = results[step].get("calibration") or {}
-        speedup = results.get(step.replace("hwsim_", "speedup_", 1))
-        scene = cal.get("fit_on") or results[step].get("workload", {}).get("scene", step)
-        label = f"{scene} ({_size(speedup)})" if speedup else scene
-        if "costs" not in cal:
-            rows.append([label, cal.get("skipped", "not calibrated"), "", "", "", ""])
-            continue
-        other = cal.get("other")
-        rows.append([label, f"{cal['self']['r2']:.3f}",
-                     f"{cal['self']['max_rel_error'] * 100:.0f}%",
-                     cal.get("other_scene", ""),
-                     f"{other['r2']:.2f}" if other else "",
-                     f"{other['max_rel_error'] * 100:.0f}%" if other else ""])
-    return _table(["fitted on", "R^2 on itself", "largest error", "predicts", "R^2",
-                   "largest error"], "lrrlrr", rows)
-
-
 def format_mpi_prediction(results: dict, step: str = "scaling_cornell_box") -> str:
     """The reduction and render times of ``partpm scaling`` against their prediction."""
     rows = []
@@ -423,6 +394,12 @@ class Block:
         return self.cited or self.steps
 
 
+def format_calibrate(results: dict, step: str = "calibrate_happy_buddha") -> str:
+    """``partpm calibrate``'s costs and cross-scene check (its own table)."""
+    from .calibrate import format_readme_table
+    return format_readme_table(results[step])
+
+
 def format_large(results: dict, steps=("large_1e7", "large_1e8")) -> str:
     """Large renders in waves (``partpm render --stats-json``): photons, waves, phase times
     and the measured peak memory per stored photon."""
@@ -455,10 +432,8 @@ BLOCKS = {b.name: b for b in (
           format_hwsim_wide),
     Block("hwsim_networks", ("hwsim_wide_cornell_box", "hwsim_wide_happy_buddha"),
           format_hwsim_networks),
-    Block("calibration", ("hwsim_cornell_box", "hwsim_happy_buddha", "hwsim_wide_cornell_box",
-                          "speedup_cornell_box", "speedup_happy_buddha",
-                          "speedup_wide_cornell_box"), format_calibration,
-          cited=("hwsim_cornell_box", "hwsim_happy_buddha", "hwsim_wide_cornell_box")),
+    Block("calibration", ("calibrate_cornell_box", "calibrate_happy_buddha"),
+          format_calibrate),
     Block("mpi_prediction", ("scaling_cornell_box",), format_mpi_prediction),
     Block("scaling", ("scaling_cornell_box",), format_scaling),
     Block("large", ("large_1e7", "large_1e8"), format_large),
