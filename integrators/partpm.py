@@ -8,6 +8,7 @@ import mitsuba as mi
 
 from mi_partpm.backends import BACKENDS, make_backend
 from mi_partpm.estimate import gather_flux
+from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.gather import final_gather
 from mi_partpm.integrators.common import Layer, PhotonMapper, Term
 from mi_partpm.photonmap import fixed_radius
@@ -144,7 +145,7 @@ class PartPMIntegrator(PhotonMapper):
          - Maps traced, built and queried at once, in [0, map_count]: the maps of a pass run
            in waves, each wave's maps freed before the next are traced, which bounds the
            memory of large photon counts; eq. (2) makes the image the same. 0: as many as
-           fit the memory budget (at most 2 GiB of maps per wave, and what is free). (Default: 0)
+           fit the memory budget (at most 1.5 GiB of maps per wave, and what is free). (Default: 0)
        * - backend
          - |string|
          - ``local``: all maps in this process; ``mpi``: inside ``mpiexec -n P``, rank j
@@ -260,7 +261,7 @@ class PartPMIntegrator(PhotonMapper):
             return dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0)
         radius = dr.gather(mi.Float, state.radius, points.lane)
         est = gather_flux(maps, points.si, points.bsdf, radius, max_bounce=points.max_bounce,
-                          kernel=self.params.kernel)
+                          kernel=self.params.kernel, lobes=estimated_lobes(self.params.glossy))
         return est.flux, est.found
 
     def _gather(self, scene, maps, points, width: int, pass_index: int):
@@ -272,7 +273,8 @@ class PartPMIntegrator(PhotonMapper):
         return final_gather(scene, maps, points, width, self.final_gather, radius,
                             seed=stream_seed(p.seed, 0, pass_index), max_depth=p.max_depth,
                             kernel=p.kernel,
-                            caustics=self.caustic_photon_count == 0 and self.wave_index == 0)
+                            caustics=self.caustic_photon_count == 0 and self.wave_index == 0,
+                            lobes=estimated_lobes(p.glossy))
 
     def to_string(self):
         p = self.params

@@ -7,6 +7,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_partpm.estimate import knn_flux
+from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.integrators.common import PhotonMapper, Term
 from mi_partpm.progressive import RadianceSum, accumulate
 from mi_partpm.props import read_float, read_int
@@ -97,7 +98,8 @@ class PMIntegrator(PhotonMapper):
         if not len(points):
             return dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0)
         est = knn_flux(maps, points.si, points.bsdf, self.k, self.max_radius,
-                       max_bounce=points.max_bounce, kernel=self.params.kernel)
+                       max_bounce=points.max_bounce, kernel=self.params.kernel,
+                       lobes=estimated_lobes(self.params.glossy))
         counted = dr.isfinite(est.radius2)
         dr.scatter_reduce(dr.ReduceOp.Add, self._acc, dr.sqrt(est.radius2), 0, counted)
         dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 1, counted)

@@ -112,9 +112,11 @@ class _Estimator:
     """
 
     def __init__(self, maps: PhotonMaps, si, bsdf, active, radius2, max_bounce=None,
-                 kernel: str = "box"):
+                 kernel: str = "box", lobes=None):
         self.maps = maps
         self.ctx = mi.BSDFContext()
+        if lobes is not None:
+            self.ctx.type_mask = lobes
         self.weight = KERNELS[kernel]
         self.active = mi.Bool(active)
         width = dr.width(si.p)
@@ -159,7 +161,7 @@ class _Estimator:
 
 def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, active=True,
                 map_range=None, with_stats: bool = False, max_bounce=None,
-                kernel: str = "box", order: str = "morton") -> Flux:
+                kernel: str = "box", order: str = "morton", lobes=None) -> Flux:
     """The flux of the photons within ``radius`` of ``si.p`` towards ``si.wi`` (eq. 2).
 
     Parameters
@@ -186,9 +188,11 @@ def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, act
         A density kernel of :data:`KERNELS`.
     order : str
         "morton" (the queries are sorted for the walk) or "given" (the caller sorted them).
+    lobes : mi.BSDFFlags, optional
+        The BSDF lobes evaluated (:func:`~mi_partpm.eyepath.estimated_lobes`); default all.
     """
     radius2 = dr.square(mi.Float(radius))
-    est = _Estimator(maps, si, bsdf, active, radius2, max_bounce, kernel)
+    est = _Estimator(maps, si, bsdf, active, radius2, max_bounce, kernel, lobes)
     res = radius_query(maps.forest, si.p, mi.Float(radius), est.contribution, mi.Spectrum,
                        est.active, maps=map_range, with_stats=True, accept=est.accept(),
                        state=est.lane, order=order)
@@ -199,12 +203,12 @@ def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, act
 
 def knn_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, k: int, max_radius=None,
              active=True, with_stats: bool = False, max_bounce=None, kernel: str = "box",
-             order: str = "morton") -> Flux:
+             order: str = "morton", lobes=None) -> Flux:
     """The conventional (Jensen) estimate's flux: the k nearest photons, r = distance to the
     k-th. Where fewer than k are found, r is ``max_radius`` as in Jensen's
     ``locate_photons``, or without a cap the distance to the farthest one found. Arguments
     as for :func:`gather_flux`."""
-    est = _Estimator(maps, si, bsdf, active, 0.0, max_bounce, kernel)
+    est = _Estimator(maps, si, bsdf, active, 0.0, max_bounce, kernel, lobes)
     res = knn_query(maps.forest, si.p, k, est.contribution, mi.Spectrum, max_radius,
                     est.active, with_stats=with_stats, accept=est.accept(), state=est.lane,
                     order=order)

@@ -27,13 +27,30 @@ import numpy as np
 from .kdtree import morton_order
 from .props import UNLIMITED_DEPTH, segment_limit
 
-__all__ = ["EyePaths", "VisiblePoints", "eye_paths", "direct_light", "first_hits"]
+__all__ = ["EyePaths", "VisiblePoints", "eye_paths", "direct_light", "first_hits",
+           "estimated_lobes", "lobe_context"]
+
+
+def estimated_lobes(glossy: str):
+    """The BSDF lobes a visible point's estimates evaluate: all of them with ``glossy = "map"``;
+    only the diffuse ones with ``"trace"``, where the glossy lobes of a surface that has both
+    (rough plastic) are traced on by BSDF sampling like a surface that is only glossy."""
+    return mi.BSDFFlags.Diffuse if glossy == "trace" else mi.BSDFFlags.All
+
+
+def lobe_context(lobes=None) -> mi.BSDFContext:
+    """A BSDF context that evaluates and samples only ``lobes`` (default: all)."""
+    ctx = mi.BSDFContext()
+    if lobes is not None:
+        ctx.type_mask = lobes
+    return ctx
 
 
 def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf,
-                 active):
-    """Direct illumination at ``si`` by one emitter sample (visibility tested)."""
-    ctx = mi.BSDFContext()
+                 active, lobes=None):
+    """Direct illumination at ``si`` by one emitter sample (visibility tested), through the
+    BSDF's ``lobes`` (default: all)."""
+    ctx = lobe_context(lobes)
     ds, emitter_weight = scene.sample_emitter_direction(si, sampler.next_2d(active), True,
                                                         active)
     active = active & (ds.pdf != 0)
@@ -141,7 +158,9 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     glossy : str
         "map": every hit with a non-delta lobe is a visible point; "trace": at a surface
         whose lobes are all glossy or delta the path goes on by BSDF sampling, and the
-        visible point is the next surface with a diffuse lobe.
+        visible point is the next surface with a diffuse lobe. A surface with both diffuse
+        and glossy lobes (rough plastic) is a visible point for its diffuse lobes
+        (:func:`estimated_lobes`), and its path goes on by sampling its glossy lobes.
     glossy_samples : int
         With "trace", the rays drawn at a path's first glossy surface (each continues alone,
         with its own random stream from ``seed``).
@@ -165,7 +184,10 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     L = dr.zeros(mi.Spectrum, width)
     beta = dr.full(mi.Spectrum, 1.0, width) if beta is None else mi.Spectrum(beta)
     trace = glossy == "trace"
-    ctx_all = mi.BSDFContext()
+    lobes = estimated_lobes(glossy)
+    # With "trace", paths go on through the glossy and delta lobes; the diffuse ones are
+    # the visible points'.
+    ctx_traced = lobe_context(mi.BSDFFlags.Glossy | mi.BSDFFlags.Delta)
     splits = []
     valid = dr.zeros(mi.Bool, width)
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
@@ -195,9 +217,12 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         # A visible point where the BSDF has a non-delta lobe and the path may grow by at
         # least one more segment towards the light.
         glossy_only = mi.Bool(False)
+        # Glossy lobes traced on: on surfaces that are only glossy (no visible point) and on
+        # those with diffuse lobes too (a visible point for those).
+        traced = mi.Bool(False)
         if trace:
-            glossy_only = active & mi.has_flag(flags, mi.BSDFFlags.Glossy) & \
-                ~mi.has_flag(flags, mi.BSDFFlags.Diffuse)
+            traced = active & mi.has_flag(flags, mi.BSDFFlags.Glossy)
+            glossy_only = traced & ~mi.has_flag(flags, mi.BSDFFlags.Diffuse)
         if depth + 1 < limit:
             smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth) & ~glossy_only
             # One kernel computes the hit and the mask before they are gathered from.
@@ -211,31 +236,30 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
                     max_bounce=dr.full(mi.UInt32, (limit - depth - 1) if bounded
                                        else 0xFFFFFFFF, dr.width(index))))
             if nee and depth + 2 <= limit:
-                L += beta * direct_light(scene, sampler, si, bsdf, smooth) * emission
-        # Follow the delta lobes (mirror, glass, plastic's coat); with "trace", glossy
-        # surfaces by sampling all their lobes.
-        follow = active & (mi.has_flag(flags, mi.BSDFFlags.Delta) | glossy_only) & \
+                L += beta * direct_light(scene, sampler, si, bsdf, smooth, lobes) * emission
+        # Follow the delta lobes (mirror, glass, plastic's coat); with "trace", the glossy
+        # surfaces by sampling their glossy and delta lobes.
+        follow = active & (mi.has_flag(flags, mi.BSDFFlags.Delta) | traced) & \
             (depth + 1 < limit)
         if trace and depth + 2 <= limit:
-            L += beta * _glossy_direct(scene, sampler, si, bsdf, glossy_only & active) * \
+            L += beta * _glossy_direct(scene, sampler, si, bsdf, traced & active) * \
                 emission
         if trace and glossy_samples > 1:
-            split = follow & glossy_only
+            split = follow & traced
             index = dr.compress(split)
             if dr.width(index):
                 dr.eval(si, bsdf, beta)
                 splits.append((depth, dr.gather(mi.SurfaceInteraction3f, si, index),
                                dr.gather(mi.Spectrum, beta, index), index))
-            follow &= ~glossy_only
+            follow &= ~traced
         bs, weight = bsdf.sample(ctx_delta, si, sampler.next_1d(follow),
-                                 sampler.next_2d(follow), follow & ~glossy_only)
+                                 sampler.next_2d(follow), follow & ~traced)
         if trace:
-            bs_g, weight_g = bsdf.sample(ctx_all, si, sampler.next_1d(follow & glossy_only),
-                                         sampler.next_2d(follow & glossy_only),
-                                         follow & glossy_only)
-            bs = dr.select(glossy_only, bs_g, bs)
-            weight = dr.select(glossy_only, weight_g, weight)
-            glossy_sampled = follow & glossy_only & \
+            bs_g, weight_g = bsdf.sample(ctx_traced, si, sampler.next_1d(follow & traced),
+                                         sampler.next_2d(follow & traced), follow & traced)
+            bs = dr.select(traced, bs_g, bs)
+            weight = dr.select(traced, weight_g, weight)
+            glossy_sampled = follow & traced & \
                 ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             prev_si = dr.select(glossy_sampled, si, prev_si)
             prev_pdf = dr.select(glossy_sampled, bs.pdf, 0.0)
@@ -270,9 +294,9 @@ def _power_heuristic(a, b):
 
 
 def _glossy_direct(scene, sampler, si, bsdf, active):
-    """Direct light at glossy surfaces by one emitter sample, MIS-weighted against BSDF
-    sampling (delta lights take it all)."""
-    ctx = mi.BSDFContext()
+    """Direct light through the glossy lobes by one emitter sample, MIS-weighted against
+    sampling those lobes (delta lights take it all)."""
+    ctx = lobe_context(mi.BSDFFlags.Glossy)
     ds, emitter_weight = scene.sample_emitter_direction(si, sampler.next_2d(active), True,
                                                         active)
     active = active & (ds.pdf != 0)
@@ -292,11 +316,11 @@ def _emission_mis(scene, prev_si, prev_pdf, si, active):
 
 def _split_paths(scene, si, beta, lanes, depth, limit, bounded, rr_depth, nee, emission,
                  samples, seed, L, parts):
-    """Continue paths from their first glossy surface ``samples`` times, each with weight
-    1/samples and a sampler of its own; their light is added to ``L`` and their visible
-    points to ``parts``, on the paths' own lanes."""
+    """Continue paths from their first glossy surface ``samples`` times through its glossy
+    and delta lobes, each with weight 1/samples and a sampler of its own; their light is
+    added to ``L`` and their visible points to ``parts``, on the paths' own lanes."""
     count = dr.width(lanes)
-    ctx = mi.BSDFContext()
+    ctx = lobe_context(mi.BSDFFlags.Glossy | mi.BSDFFlags.Delta)
     bsdf = si.bsdf()
     left = (limit - depth - 1) if bounded else UNLIMITED_DEPTH
     for j in range(samples):

@@ -24,9 +24,11 @@ __all__ = ["final_gather"]
 
 def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius: float,
                  seed: int = 0, max_depth: int = -1, kernel: str = "box",
-                 caustics: bool = False):
+                 caustics: bool = False, lobes=None):
     """The final gather's radiance per eye path (``width`` of them) and the photons found,
-    summed over ``samples`` rays from each visible point of ``points``."""
+    summed over ``samples`` rays from each visible point of ``points``, sampled from the
+    BSDF's ``lobes`` (default all; the visible points' :func:`~mi_partpm.eyepath.
+    estimated_lobes`)."""
     from .progressive import accumulate
     total = dr.zeros(mi.Spectrum, width)
     found = dr.zeros(mi.Float, width)
@@ -34,6 +36,8 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
         return total, found
     limit = segment_limit(max_depth)
     ctx = mi.BSDFContext()
+    if lobes is not None:
+        ctx.type_mask = lobes
     count = len(points)
     for j in range(samples):
         rng = mi.PCG32(count, dr.opaque(mi.UInt64, seed & 0xFFFFFFFFFFFFFFFF),

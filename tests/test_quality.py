@@ -180,6 +180,38 @@ def test_glossy_trace_matches_path_on_a_rough_conductor():
         assert abs(ratio - 1) < 0.05, (samples, ratio)
 
 
+def plastic_ball():
+    """The room of :func:`gold_ball` around a rough blue plastic ball: a glossy coat over a
+    diffuse base, both lobes on one surface."""
+    return small_scene([0, 0, 3], [0, 0, 0], size=32, spp=16, fov=30,
+                       ball={"type": "sphere", "radius": 0.5,
+                             "bsdf": {"type": "roughplastic", "alpha": 0.1,
+                                      "diffuse_reflectance": {"type": "rgb",
+                                                              "value": [0.15, 0.25, 0.6]}}},
+                       room={"type": "sphere", "radius": 4, "flip_normals": True,
+                             "bsdf": {"type": "diffuse"}},
+                       light={"type": "point", "position": [1, 2, 2], "intensity": 30.0})
+
+
+@pytest.mark.parametrize("direct", ["photons", "nee"])
+def test_glossy_trace_splits_the_lobes_of_rough_plastic(direct):
+    """glossy = trace on a surface with a diffuse and a glossy lobe: the map (or emitter
+    sampling, with nee) gives the diffuse lobe's light, and the glossy coat is traced on by
+    BSDF sampling with its own emitter sample. Measured: 0.989-0.995 of path's mean on the
+    ball with 1 and 4 glossy rays; counting the coat twice (the map's estimate over all
+    lobes while the coat is also traced) gives 1.10. Bound 5%, as for the gold ball."""
+    scene = plastic_ball()
+    ref = path_reference(scene, 1024)
+    ball = (slice(12, 20), slice(12, 20))
+    for samples in (1, 4):
+        img = render(scene, mi.load_dict({"type": "partpm", "photon_count": 1_000_000,
+                                          "radius": 0.05, "glossy": "trace",
+                                          "direct": direct, "glossy_samples": samples}))
+        ratio = img[ball].mean() / ref[ball].mean()
+        print(f"rough plastic, {direct}, {samples} ray(s): ball / path {ratio:.4f}")
+        assert abs(ratio - 1) < 0.05, (samples, ratio)
+
+
 def test_glossy_samples_needs_trace():
     with pytest.raises(Exception, match=r"glossy_samples = 4 needs glossy = 'trace'"):
         mi.load_dict({"type": "partpm", "glossy_samples": 4})

@@ -13,14 +13,12 @@ only when its recorded settings equal the ones asked for AND it was made by the 
 (:func:`~mi_partpm.experiments.provenance.code_version`, a hash of the sources); otherwise it
 is run again, and the progress line says why. Delete a run's directory to recompute it anyway.
 
-``speedup.json`` records its code version itself. ``metrics.json`` of the comparison does not,
-so the comparison's code version is recorded beside it, in :data:`CODE_FILE`, together with a
-hash of the ``metrics.json`` it belongs to (a ``metrics.json`` written later by the CLI, by
-whatever code, does not match it and is recomputed).
+Every result file a notebook reuses (``speedup.json``, the comparison's ``metrics.json``, the
+hwsim report) records the code version that wrote it, in its ``code`` field; a file without
+one is run again.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from dataclasses import asdict
@@ -28,12 +26,7 @@ from pathlib import Path
 
 from .provenance import code_version
 
-__all__ = ["SIZES", "size", "out_dir", "compare", "speedup", "hwsim_report", "show",
-           "CODE_FILE"]
-
-#: Beside a run whose result file does not record its code version: that version and the
-#: SHA-256 of the result file it describes.
-CODE_FILE = "code_version.json"
+__all__ = ["SIZES", "size", "out_dir", "compare", "speedup", "hwsim_report", "show"]
 
 SIZES = {
     "paper": {"compare": {"resolution": (480, 480), "spp": 4, "photons": 100_000, "maps": 8,
@@ -68,31 +61,6 @@ def _same(recorded: dict, wanted: dict) -> bool:
                for k, v in wanted.items())
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def _record_code(done: Path, code: str):
-    """Write :data:`CODE_FILE` beside ``done``: ``code`` made exactly this file."""
-    (done.parent / CODE_FILE).write_text(json.dumps(
-        {"code": code, "file": done.name, "sha256": _sha256(done)}, indent=2) + "\n")
-
-
-def _recorded_code(done: Path, result: dict):
-    """The code version that made ``done``: its own ``code`` field, else :data:`CODE_FILE`'s
-    when that describes this very file; None when neither says."""
-    if result.get("code"):
-        return result["code"]
-    side = done.parent / CODE_FILE
-    try:
-        info = json.loads(side.read_text())
-    except (OSError, ValueError):
-        return None
-    if info.get("file") == done.name and info.get("sha256") == _sha256(done):
-        return info.get("code")
-    return None
-
-
 def _reusable(done: Path, what: str, matches, progress) -> dict | None:
     """The result in ``done`` when ``matches(result)`` (its settings) and its code version is
     the current one; otherwise None, after a progress line saying why it is run again."""
@@ -103,7 +71,7 @@ def _reusable(done: Path, what: str, matches, progress) -> dict | None:
     if not matches(result):
         progress(f"{what}: {done} has other settings: running again")
         return None
-    current, recorded = code_version(), _recorded_code(done, result)
+    current, recorded = code_version(), result.get("code")
     if recorded != current:
         made_by = f"code {recorded}" if recorded else "code of unknown version"
         progress(f"{what}: {done} was made by {made_by}, this is code {current}: "
@@ -122,10 +90,7 @@ def compare(scene: str, progress=print) -> dict:
     wanted = {k: v for k, v in asdict(settings).items() if k not in ("k", "data_dir")}
     result = _reusable(done, scene, lambda r: _same(r["settings"], wanted), progress)
     if result is None:
-        code = code_version()
         result = run_compare(settings, out, progress=progress)
-        if not result.get("code"):
-            _record_code(done, code)
     result["out"] = str(out)
     return result
 
