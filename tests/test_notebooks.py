@@ -65,8 +65,7 @@ def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkey
     """The notebooks read a finished run back only when its settings and its code version
     are the current ones; with another code version (or none recorded) they run it again
     and say so. The experiments are replaced by stand-ins that count their runs and write
-    what the real ones write (the comparison's metrics.json records no code version, so the
-    notebook helper records it beside; speedup.json records its own)."""
+    what the real ones write (metrics.json and speedup.json record their code version)."""
     from dataclasses import asdict
 
     from mi_partpm.experiments import compare, notebook, speedup
@@ -77,7 +76,7 @@ def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkey
     def fake_compare(settings, out, progress=print):
         runs.append("compare")
         result = {"settings": {**asdict(settings), "resolution": list(settings.resolution),
-                               "k": 10}, "metrics": {}}
+                               "k": 10}, "metrics": {}, "code": notebook.code_version()}
         out.mkdir(parents=True, exist_ok=True)
         (out / "metrics.json").write_text(json.dumps(result))
         return result
@@ -114,16 +113,16 @@ def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkey
     notebook.compare("cornell_box", progress=said.append)
     assert runs.count("compare") == 3 and said[-1].endswith("has other settings: running "
                                                             "again"), said[-1]
-    # A result file without a code version, and none recorded beside it: run again.
+    # A result file without a code version: run again.
     done = tmp_path / "smoke" / "speedup_cornell_box" / "speedup.json"
     result = json.loads(done.read_text())
     del result["code"]
     done.write_text(json.dumps(result))
     notebook.speedup("cornell_box", progress=said.append)
     assert runs.count("speedup") == 3 and "code of unknown version" in said[-1], said
-    # A metrics.json rewritten after its code version was recorded (e.g. by the CLI): the
-    # record does not describe it, so it is run again.
     metrics = tmp_path / "smoke" / "compare_cornell_box" / "metrics.json"
-    metrics.write_text(metrics.read_text() + " ")
+    result = json.loads(metrics.read_text())
+    del result["code"]
+    metrics.write_text(json.dumps(result))
     notebook.compare("cornell_box", progress=said.append)
     assert runs.count("compare") == 4 and "code of unknown version" in said[-1], said
