@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from .eyepath import lobe_context
 from .kdtree import knn_query, radius_query
 from .photonmap import PhotonMaps
 
@@ -114,9 +115,7 @@ class _Estimator:
     def __init__(self, maps: PhotonMaps, si, bsdf, active, radius2, max_bounce=None,
                  kernel: str = "box", lobes=None):
         self.maps = maps
-        self.ctx = mi.BSDFContext()
-        if lobes is not None:
-            self.ctx.type_mask = lobes
+        self.ctx = lobe_context(lobes)
         self.weight = KERNELS[kernel]
         self.active = mi.Bool(active)
         width = dr.width(si.p)

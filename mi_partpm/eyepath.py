@@ -191,8 +191,7 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     splits = []
     valid = dr.zeros(mi.Bool, width)
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
-    ctx_delta = mi.BSDFContext()
-    ctx_delta.type_mask = mi.BSDFFlags.Delta
+    ctx_delta = lobe_context(mi.BSDFFlags.Delta)
     # The last glossy surface of each path and the pdf of the direction sampled there (0:
     # the path came from the camera or a delta lobe, its emission needs no MIS weight).
     prev_si, prev_pdf = prev if prev is not None else (dr.zeros(mi.SurfaceInteraction3f,
@@ -280,7 +279,7 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
             break
     for depth_at, si, beta_at, lanes in splits:
         L = _split_paths(scene, si, beta_at, lanes, depth_at, limit, bounded, rr_depth, nee,
-                         emission, glossy_samples, seed, L, parts)
+                         emission, glossy_samples, seed, L, parts, ctx_traced)
     if not parts:
         parts = [VisiblePoints(dr.zeros(mi.SurfaceInteraction3f, 0), dr.zeros(mi.BSDFPtr, 0),
                                dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0),
@@ -315,12 +314,11 @@ def _emission_mis(scene, prev_si, prev_pdf, si, active):
 
 
 def _split_paths(scene, si, beta, lanes, depth, limit, bounded, rr_depth, nee, emission,
-                 samples, seed, L, parts):
+                 samples, seed, L, parts, ctx):
     """Continue paths from their first glossy surface ``samples`` times through its glossy
-    and delta lobes, each with weight 1/samples and a sampler of its own; their light is
-    added to ``L`` and their visible points to ``parts``, on the paths' own lanes."""
+    and delta lobes (``ctx``), each with weight 1/samples and a sampler of its own; their
+    light is added to ``L`` and their visible points to ``parts``, on the paths' own lanes."""
     count = dr.width(lanes)
-    ctx = lobe_context(mi.BSDFFlags.Glossy | mi.BSDFFlags.Delta)
     bsdf = si.bsdf()
     left = (limit - depth - 1) if bounded else UNLIMITED_DEPTH
     for j in range(samples):
@@ -370,8 +368,7 @@ def first_hits(scene: mi.Scene, spp: int = 1, seed: int = 0, max_depth: int = 16
     pos = mi.Vector2f(mi.Float(pixel % int(size[0])), mi.Float(pixel // int(size[0])))
     uv = (pos + sampler.next_2d()) / mi.ScalarVector2f(size)
     ray, _ = cam.sample_ray(0.0, 0.5, uv, sampler.next_2d())
-    ctx_delta = mi.BSDFContext()
-    ctx_delta.type_mask = mi.BSDFFlags.Delta
+    ctx_delta = lobe_context(mi.BSDFFlags.Delta)
     active = dr.full(mi.Bool, True, count)
     found = dr.full(mi.Bool, False, count)
     hits = dr.zeros(mi.SurfaceInteraction3f, count)

@@ -17,6 +17,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .estimate import gather_flux
+from .eyepath import lobe_context
 from .props import UNLIMITED_DEPTH, segment_limit
 
 __all__ = ["final_gather"]
@@ -35,9 +36,7 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
     if not len(points):
         return total, found
     limit = segment_limit(max_depth)
-    ctx = mi.BSDFContext()
-    if lobes is not None:
-        ctx.type_mask = lobes
+    ctx = lobe_context(lobes)
     count = len(points)
     for j in range(samples):
         rng = mi.PCG32(count, dr.opaque(mi.UInt64, seed & 0xFFFFFFFFFFFFFFFF),
@@ -70,8 +69,7 @@ def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool, cha
     ``chain`` delta bounces): (hit, its BSDF, reached, throughput, emission seen after one
     delta bounce or more when ``caustics``)."""
     seen = dr.zeros(mi.Spectrum, dr.width(beta))
-    ctx_delta = mi.BSDFContext()
-    ctx_delta.type_mask = mi.BSDFFlags.Delta
+    ctx_delta = lobe_context(mi.BSDFFlags.Delta)
     hit = dr.zeros(mi.SurfaceInteraction3f, dr.width(beta))
     reached = dr.zeros(mi.Bool, dr.width(beta))
     for step in range(min(chain, max(limit - 1, 1))):

@@ -57,19 +57,25 @@ class MemoryGuardError(MemoryError):
     """The render would need more memory than is free; the message says which prop to lower."""
 
 
+def _proc_bytes(path: str, key: str) -> Optional[int]:
+    """The ``key:`` line of a /proc file given in kB (``MemAvailable`` of /proc/meminfo,
+    ``VmHWM`` of /proc/self/status), in bytes; None where it cannot be read."""
+    try:
+        with open(path) as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
 def available_bytes() -> Optional[int]:
     """Free memory (``MemAvailable``), or None where it cannot be read."""
     override = os.environ.get("PARTPM_MEMORY_LIMIT")
     if override:
         return int(float(override))
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
+    return _proc_bytes("/proc/meminfo", "MemAvailable")
 
 
 def peak_rss_bytes() -> int:
@@ -78,13 +84,9 @@ def peak_rss_bytes() -> int:
     On Linux this is ``VmHWM`` of ``/proc/self/status``: ``ru_maxrss`` is carried from a
     parent into a child across fork and exec, so a small child of a large process would
     report its parent's peak. Elsewhere it is ``ru_maxrss``."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
+    hwm = _proc_bytes("/proc/self/status", "VmHWM")
+    if hwm is not None:
+        return hwm
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return int(peak if sys.platform == "darwin" else peak * 1024)
 
