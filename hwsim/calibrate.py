@@ -9,6 +9,18 @@ with a, b, c, d >= 0: seconds per node visited, per photon tested, per photon fo
 per map run (the fixed cost of one map answering its queries: on the CPU, recording and
 launching its kernel). One row per map of every n of every set.
 
+**Packets.** On the CPU the queries do not walk alone: Dr.Jit's LLVM backend runs them side
+by side in packets of ``lanes`` SIMD lanes (16 with AVX-512), and a packet loops until its
+slowest lane is done, so a lane that finished early costs as much as the slowest one. Where a
+workload records its ``lanes`` (WORKLOAD.md), each sum over queries is therefore taken per
+packet of consecutive queries, in the order they ran, as ``lanes`` times the packet's largest
+count (:func:`packet_sum`): the counts the CPU's loops paid for. This matters across scenes:
+where neighbouring hit points find very different numbers of photons (the Cornell box's
+caustic beside its walls), the plain sums undercount the work more than on a scene of even
+density, and costs fitted on one scene on plain sums are biased on the other. A scalar
+processing element pays for its own counts only: hwsim's PE model runs the costs on the
+plain per-query counts.
+
 **The design.** Within one speedup run (one leaf size, one radius) nodes, tests and found
 photons fall together as n grows, so the columns are nearly collinear and the fit cannot
 tell the costs apart (it may put one of them at 0 and another absorbs it). ``partpm
@@ -44,7 +56,8 @@ from scipy.optimize import nnls
 
 from .workload import MapWorkloads, WorkloadSet
 
-__all__ = ["Costs", "Fit", "COST_NAMES", "FEATURES", "WEIGHTINGS", "GOAL", "features",
+__all__ = ["Costs", "Fit", "COST_NAMES", "FEATURES", "WEIGHTINGS", "GOAL", "packet_sum",
+           "features",
            "set_features", "fit", "calibrate", "check", "design", "cross_check", "goal",
            "write_costs", "read_costs", "format_fit", "format_check", "format_cross",
            "synthetic_workloads"]
@@ -121,16 +134,35 @@ def _as_sets(data) -> list:
     return out
 
 
-def features(loads) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def packet_sum(counts, lanes: int | None = 1) -> float:
+    """What ``counts`` (one per query, in the order the queries ran) cost in packets of
+    ``lanes`` queries that each run until their slowest lane is done: per packet of
+    consecutive queries, ``lanes`` times its largest count (a last, partial packet: its own
+    size times its largest). ``lanes`` None or 1: the plain sum."""
+    a = np.asarray(counts, dtype=np.float64).ravel()
+    if lanes is None or lanes == 1 or a.size == 0:
+        return float(a.sum())
+    if not isinstance(lanes, (int, np.integer)) or lanes < 1:
+        raise ValueError(f"lanes must be an integer >= 1, got {lanes!r}")
+    full = a.size // lanes * lanes
+    total = float(a[:full].reshape(-1, lanes).max(axis=1).sum()) * lanes
+    if full < a.size:
+        total += float(a[full:].max()) * (a.size - full)
+    return total
+
+
+def features(loads, lanes: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(X, t, n) of one workload ``{n: MapWorkloads}``: one row per map of every n, its
-    summed counts and 1 (:data:`FEATURES`); its median measured time; its n."""
+    counts summed over its queries (per packet of ``lanes``, :func:`packet_sum`) and 1
+    (:data:`FEATURES`); its median measured time; its n."""
     rows, times, ns = [], [], []
     for n, w in sorted(loads.items()):
         if w.map_seconds.size == 0:
             raise ValueError(f"workload n = {n} has no measured map_seconds to calibrate on")
         for m in range(n):
-            rows.append([float(w.nodes_visited[m].sum()), float(w.photons_tested[m].sum()),
-                         float(w.photons_found[m].sum()), 1.0])
+            rows.append([packet_sum(w.nodes_visited[m], lanes),
+                         packet_sum(w.photons_tested[m], lanes),
+                         packet_sum(w.photons_found[m], lanes), 1.0])
             times.append(float(np.median(w.map_seconds[m])))
             ns.append(n)
     return np.array(rows).reshape(-1, 4), np.array(times), np.array(ns)
@@ -141,7 +173,7 @@ def set_features(data) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, 
     sets = _as_sets(data)
     xs, ts, ns, which = [], [], [], []
     for i, s in enumerate(sets):
-        x, t, n = features(s.loads)
+        x, t, n = features(s.loads, s.meta.get("lanes"))
         xs.append(x)
         ts.append(t)
         ns.append(n)

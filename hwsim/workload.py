@@ -5,8 +5,9 @@ workloads directory per leaf size and radius) with :func:`save_workload_sets`; h
 them with :func:`load_workloads` and :func:`load_workload_sets`.
 
 Version 2 adds, in ``meta.json``, the radius as a fraction of the scene (``radius_fraction``)
-and the CPU threads the times were measured with (``threads``); version 1 files still load
-(those keys then read as null).
+and the CPU threads the times were measured with (``threads``); version 3 the SIMD lanes that
+ran each query (``lanes``: queries walk the tree side by side in packets of that many, in the
+order of the per-query arrays). Older files still load (those keys then read as null).
 
 NumPy and JSON only: hwsim never imports Mitsuba.
 """
@@ -23,9 +24,10 @@ __all__ = ["MapWorkloads", "WorkloadSet", "load_workloads", "save_workloads",
            "READS_VERSIONS", "SETS_FILE"]
 
 #: The version written.
-FORMAT_VERSION = 2
-#: The versions read: 1 lacks ``radius_fraction`` and ``threads`` (read as None).
-READS_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+#: The versions read: 1 lacks ``radius_fraction`` and ``threads``, 1 and 2 lack ``lanes``
+#: (read as None).
+READS_VERSIONS = (1, 2, 3)
 #: The index of a directory of calibration sets.
 SETS_FILE = "sets.json"
 
@@ -82,7 +84,7 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
     if meta.get("version") not in READS_VERSIONS:
         raise ValueError(f"{meta_path}: format version {meta.get('version')!r}, this hwsim "
                          f"reads versions {', '.join(map(str, READS_VERSIONS))}")
-    for key in ("radius_fraction", "threads", "leaf_size"):
+    for key in ("radius_fraction", "threads", "leaf_size", "lanes"):
         meta.setdefault(key, None)
     loads = {}
     for n_text, name in meta["files"].items():
@@ -104,11 +106,14 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
 def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: float = 0.0,
                    photons_emitted: int = 0, photons_stored: int | None = None,
                    leaf_size: int | None = None, radius_fraction: float | None = None,
-                   threads: int | None = None) -> Path:
+                   threads: int | None = None, lanes: int | None = None) -> Path:
     """Write ``{n: MapWorkloads}`` in the WORKLOAD.md format. The bytes of a photon record
     and of a tree node are the workloads' own (the same for every n). ``radius_fraction``:
     the radius over the scene's longest side; ``threads``: the CPU threads that measured
-    ``map_seconds`` (None: unknown, or not measured)."""
+    ``map_seconds``; ``lanes``: the SIMD lanes of one packet of queries in those runs, the
+    per-query arrays being in the order the queries ran (None: unknown, or not measured)."""
+    if lanes is not None and (not isinstance(lanes, int) or lanes < 1):
+        raise ValueError(f"lanes must be an integer >= 1 or None, got {lanes!r}")
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     queries = {w.queries for w in loads.values()}
@@ -123,7 +128,7 @@ def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: 
     info = {"version": FORMAT_VERSION, "scene": scene, "queries": queries.pop(),
             "radius": radius, "photons_emitted": photons_emitted,
             "photons_stored": photons_stored, "leaf_size": leaf_size,
-            "radius_fraction": radius_fraction, "threads": threads,
+            "radius_fraction": radius_fraction, "threads": threads, "lanes": lanes,
             "bytes_per_photon": int(bytes_per_photon), "bytes_per_node": int(bytes_per_node),
             "maps": sorted(loads), "files": {str(n): f"n{n}.npz" for n in sorted(loads)}}
     for n, w in loads.items():
@@ -166,7 +171,7 @@ def save_workload_sets(directory, sets, *, scene: str, settings: dict | None = N
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     keys = ("radius", "photons_emitted", "photons_stored", "leaf_size", "radius_fraction",
-            "threads")
+            "threads", "lanes")
     index = []
     for s in sets:
         save_workloads(d / s.name, s.loads, scene=scene,

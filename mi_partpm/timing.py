@@ -2,7 +2,7 @@
 
 Dr.Jit records computations lazily and runs kernels asynchronously, so a timer must evaluate
 the result and synchronise before it stops. Every timed phase and benchmark in the project
-goes through :func:`timed`, :func:`median_time` or :class:`Stopwatch`.
+goes through :func:`timed`, :func:`median_time`, :func:`paired_times` or :class:`Stopwatch`.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from typing import Callable
 import drjit as dr
 import numpy as np
 
-__all__ = ["sync", "timed", "median_time", "Stopwatch"]
+__all__ = ["sync", "timed", "median_time", "paired_times", "Stopwatch"]
 
 
 def sync(*values):
@@ -37,6 +37,25 @@ def median_time(fn: Callable, repeats: int, jit: bool = True, warmup: int = 1) -
     for _ in range(warmup):
         timed(fn, jit)
     return float(np.median([timed(fn, jit)[1] for _ in range(repeats)]))
+
+
+def paired_times(fns, repeats: int, warmup: int = 1) -> np.ndarray:
+    """Seconds of every ``(fn, jit)`` in ``fns``, shape (len(fns), repeats), timed in rounds:
+    every round runs each once, the first one rotating from round to round. A comparison of
+    two codes then sees the same load on the machine in each round, so the per-round ratios
+    show how far the load moved the comparison, and their median does not drift with it.
+    ``warmup`` untimed rounds first (compilation)."""
+    k = len(fns)
+    for _ in range(warmup):
+        for fn, jit in fns:
+            timed(fn, jit)
+    out = np.zeros((k, repeats))
+    for rep in range(repeats):
+        for j in range(k):
+            i = (rep + j) % k
+            fn, jit = fns[i]
+            out[i, rep] = timed(fn, jit)[1]
+    return out
 
 
 class Stopwatch:

@@ -499,7 +499,7 @@ def test_calibration_sets_round_trip_and_version_1_workloads_still_load(tmp_path
                                 save_workload_sets, save_workloads)
     sets = _scene_sets(seed=3, leaf_sizes=(8, 32), radii=(0.5, 1.0), maps=(1, 2))
     for st in sets:
-        st.meta.update(radius_fraction=st.meta["radius"] / 20, threads=1,
+        st.meta.update(radius_fraction=st.meta["radius"] / 20, threads=1, lanes=16,
                        photons_emitted=1000, photons_stored=200_000)
     d = save_workload_sets(tmp_path / "sets", sets, scene="synthetic",
                            settings={"repeats": 1})
@@ -507,9 +507,10 @@ def test_calibration_sets_round_trip_and_version_1_workloads_still_load(tmp_path
     assert index["scene"] == "synthetic" and index["settings"] == {"repeats": 1}
     assert [s.name for s in back] == ["leaf8_r0.5", "leaf8_r1", "leaf32_r0.5", "leaf32_r1"]
     for st, got in zip(sets, back):
-        assert got.meta["version"] == FORMAT_VERSION == 2
-        assert (got.leaf_size, got.radius, got.meta["radius_fraction"], got.meta["threads"]) \
-            == (st.meta["leaf_size"], st.meta["radius"], st.meta["radius"] / 20, 1)
+        assert got.meta["version"] == FORMAT_VERSION == 3
+        assert (got.leaf_size, got.radius, got.meta["radius_fraction"], got.meta["threads"],
+                got.meta["lanes"]) \
+            == (st.meta["leaf_size"], st.meta["radius"], st.meta["radius"] / 20, 1, 16)
         for n, w in st.loads.items():
             np.testing.assert_array_equal(got.loads[n].photons_tested, w.photons_tested)
             np.testing.assert_array_equal(got.loads[n].map_seconds, w.map_seconds)
@@ -517,15 +518,16 @@ def test_calibration_sets_round_trip_and_version_1_workloads_still_load(tmp_path
     plain = save_workloads(tmp_path / "plain", sets[0].loads, scene="p", leaf_size=8)
     index, one = load_workload_sets(plain)
     assert index["scene"] == "p" and len(one) == 1 and one[0].leaf_size == 8
-    # Version 1 (no radius_fraction, no threads) still loads; version 3 does not.
+    # Version 1 (no radius_fraction, threads or lanes) still loads; version 4 does not.
     meta = json.loads((plain / "meta.json").read_text())
-    for key in ("radius_fraction", "threads"):
+    for key in ("radius_fraction", "threads", "lanes"):
         del meta[key]
     (plain / "meta.json").write_text(json.dumps({**meta, "version": 1}))
     old, _ = load_workloads(plain)
     assert old["version"] == 1 and old["radius_fraction"] is None and old["threads"] is None
-    (plain / "meta.json").write_text(json.dumps({**meta, "version": 3}))
-    with pytest.raises(ValueError, match="format version 3, this hwsim reads versions 1, 2"):
+    assert old["lanes"] is None
+    (plain / "meta.json").write_text(json.dumps({**meta, "version": 4}))
+    with pytest.raises(ValueError, match="format version 4, this hwsim reads versions 1, 2, 3"):
         load_workloads(plain)
     # The index and a set's meta.json must agree on what the set is.
     index = json.loads((d / "sets.json").read_text())
@@ -535,6 +537,26 @@ def test_calibration_sets_round_trip_and_version_1_workloads_still_load(tmp_path
         load_workload_sets(d)
     with pytest.raises(ValueError, match="holds neither sets.json"):
         load_workload_sets(tmp_path)
+
+
+def test_packet_sums_count_what_a_packet_runs_until_its_slowest_lane():
+    """Queries in packets of ``lanes`` each cost their packet's largest count, by hand; one
+    lane is the plain sum; the features of a workload that records its lanes use them."""
+    from hwsim.calibrate import features, packet_sum
+    counts = [1, 3, 2, 2, 5]
+    assert packet_sum(counts, 1) == packet_sum(counts, None) == 13
+    assert packet_sum(counts, 2) == 2 * 3 + 2 * 2 + 1 * 5
+    assert packet_sum(counts, 4) == 4 * 3 + 1 * 5
+    assert packet_sum(counts, 8) == 5 * 5
+    assert packet_sum([4, 4, 4, 4], 2) == 16          # even work: nothing lost to packets
+    with pytest.raises(ValueError, match="lanes must be an integer >= 1"):
+        packet_sum(counts, 0)
+    w = _scene_sets(seed=3, leaf_sizes=(8,), radii=(0.5,), maps=(1, 2))[0].loads
+    plain, t, _ = features(w)
+    packed, t2, _ = features(w, 16)
+    np.testing.assert_array_equal(t, t2)
+    assert np.all(packed[:, :3] >= plain[:, :3]) and np.any(packed[:, :3] > plain[:, :3])
+    assert packed[0, 0] == packet_sum(w[1].nodes_visited[0], 16)
 
 
 def _costs_file(tmp_path, grid_sets=None, threads=2):

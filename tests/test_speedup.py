@@ -34,7 +34,8 @@ def test_speedup_per_map_estimates_gather_to_one_map(tmp_path):
     meta, loads = load_workloads(tmp_path / "workloads")
     assert sorted(loads) == [1, 2, 4, 7] and meta["queries"] == result["queries"] > 1000
     # Format version 2: the radius as a fraction of the scene and the timing threads.
-    assert meta["version"] == 2 and meta["radius_fraction"] == 0.05 and meta["threads"] >= 1
+    assert meta["version"] == 3 and meta["radius_fraction"] == 0.05 and meta["threads"] >= 1
+    assert meta["lanes"] in (4, 8, 16, 32)
     assert meta["leaf_size"] == 32
     one = loads[1]
     for n, w in loads.items():
@@ -262,6 +263,12 @@ def test_bench_smoke(tmp_path, capsys):
         assert r["met"] is (r["ratio"] >= r["target"] if r["target_is"] == "at least"
                             else r["ratio"] <= r["target"]), name
         assert r["baseline_name"], name
+        if not name.startswith(("memory", "emitting")):
+            # Timed in rounds beside its baseline: the medians' ratio lies within the rounds'
+            # ratios (if every round's ratio is <= hi, so is the medians').
+            lo, hi = r["ratio_range"]
+            assert r["rounds"] == result["repeats"], name
+            assert lo * (1 - 1e-9) <= r["ratio"] <= hi * (1 + 1e-9), (name, lo, r["ratio"], hi)
     for name in expected[:4]:
         assert rows[name]["photons_per_query"] > 0, name
     assert rows["integrator estimate, 32 maps in turn / 1 map"]["visible_points"] > 0

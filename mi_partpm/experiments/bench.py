@@ -1,7 +1,10 @@
 """``partpm bench``: what users run, against the baselines they could pick, in one run.
 
-Every comparison is timed in one run, on the same data, as medians over ``repeats``; each row
-prints a ratio against its named baseline and the target it is held to:
+Every comparison is timed in one run, on the same data, in ``repeats`` rounds that run ours and
+the baseline one after the other (:func:`~mi_partpm.timing.paired_times`), so that both see
+the same load on the machine. Each row prints the medians' ratio against its named baseline,
+the target it is held to, and the range of the per-round ratios (how far the machine's load
+moved the comparison within the run):
 
 - fixed-radius power sums (the bare :func:`~mi_partpm.kdtree.radius_query`) vs
   ``scipy.spatial.cKDTree.query_ball_point(return_length=True, workers=-1)``, which only
@@ -25,7 +28,6 @@ prints a ratio against its named baseline and the target it is held to:
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,7 +41,7 @@ from ..eyepath import eye_paths, first_hits
 from ..kdtree import build_forest, knn_query, morton_order, radius_query
 from ..photonmap import build_photon_maps, fixed_radius
 from ..scenes import load_scene
-from ..timing import median_time, sync
+from ..timing import median_time, paired_times, sync
 from ..trace import trace_photons
 
 __all__ = ["run_bench", "format_bench", "room_workload", "path_segments", "SIZES"]
@@ -102,19 +104,33 @@ class _Bench:
     rows: list = field(default_factory=list)
 
     def row(self, name, ours, base, base_name, target, ratio, meaning, at_least=True,
-            unit="s", **extra):
+            unit="s", rounds=None, **extra):
+        """One row; ``rounds``: the ratio of every timed round (its range is reported)."""
         ok = ratio >= target if at_least else ratio <= target
+        if rounds is not None:
+            extra.update(ratio_range=[float(np.min(rounds)), float(np.max(rounds))],
+                         rounds=int(len(rounds)))
         self.rows.append({"benchmark": name, "ours": ours, "baseline": base,
                           "baseline_name": base_name, "ratio": ratio, "target": target,
                           "target_is": "at least" if at_least else "at most",
                           "ratio_meaning": meaning, "met": bool(ok), "unit": unit, **extra})
+        spread = (f", rounds {extra['ratio_range'][0]:.2f}-{extra['ratio_range'][1]:.2f}"
+                  if rounds is not None else "")
         self.say(f"  {name}: ours {ours:.4g} {unit}, {base_name} {base:.4g} {unit}, {meaning} "
-                 f"{ratio:.2f} (target {'>=' if at_least else '<='} {target}) "
+                 f"{ratio:.2f}{spread} (target {'>=' if at_least else '<='} {target}) "
                  f"{'met' if ok else 'NOT met'}")
 
+    def pair(self, ours, base, repeats=None, base_jit=False):
+        """(ours, baseline) seconds per round, timed in alternating rounds."""
+        t = paired_times([(ours, True), (base, base_jit)], repeats or self.repeats)
+        return t[0], t[1]
+
     def faster(self, name, ours, base, base_name, target, **extra):
-        self.row(name, ours, base, base_name, target, base / ours, "baseline time / ours",
-                 **extra)
+        """A row from per-round seconds: medians, their ratio, the rounds' ratios."""
+        ours, base = np.asarray(ours), np.asarray(base)
+        o, b = float(np.median(ours)), float(np.median(base))
+        self.row(name, o, b, base_name, target, b / o, "baseline time / ours",
+                 rounds=base / ours, **extra)
 
 
 def _points(a: np.ndarray) -> mi.Point3f:
@@ -136,18 +152,17 @@ def _bench_queries(b: _Bench, w: _Workload):
     for order in ("unsorted", "sorted"):
         q = w.queries if order == "unsorted" else w.queries[morton_order(w.queries)]
         p = _points(q)
-        ours = median_time(lambda: radius_query(forest, p, w.radius, lambda i, d2, a, s: dr.gather(
-            mi.Float, power, i, a)), b.repeats)
-        base = median_time(lambda: ck.query_ball_point(q, w.radius, return_length=True,
-                                                       workers=-1), b.repeats, jit=False)
+        ours, base = b.pair(
+            lambda: radius_query(forest, p, w.radius, lambda i, d2, a, s: dr.gather(
+                mi.Float, power, i, a)),
+            lambda: ck.query_ball_point(q, w.radius, return_length=True, workers=-1))
         b.faster(f"radius sums, {w.name}, {order}", ours, base, "cKDTree count only", 3.0,
                  photons_per_query=found)
-        ours = median_time(lambda: knn_query(forest, p, 50, lambda i, d2, a, s: dr.gather(
-            mi.Float, power, i, a)).total, b.repeats)
-        if knn_base is not None:
-            base = median_time(lambda: knn_base.query(q, k=50), b.repeats, jit=False)
-        else:
-            base = median_time(lambda: ck.query(q, k=50, workers=-1), b.repeats, jit=False)
+        ours, base = b.pair(
+            lambda: knn_query(forest, p, 50, lambda i, d2, a, s: dr.gather(
+                mi.Float, power, i, a)).total,
+            (lambda: knn_base.query(q, k=50)) if knn_base is not None
+            else (lambda: ck.query(q, k=50, workers=-1)))
         b.faster(f"kNN k=50, {w.name}, {order}", ours, base, knn_name, 1.0)
 
 
@@ -170,11 +185,11 @@ def _bench_estimate(b: _Bench, scene, photons: int, n: int = 32):
     def estimate(maps):
         est = gather_flux(maps, points.si, points.bsdf, radius)
         return est.flux, est.found
-    t1 = median_time(lambda: estimate(one), b.repeats)
-    tn = median_time(lambda: estimate(split), b.repeats)
-    b.row(f"integrator estimate, {n} maps in turn / 1 map", tn, t1, "one map, all photons",
-          2.0, tn / t1, f"time of {n} maps / 1 map", at_least=False,
-          visible_points=len(points))
+    tn, t1 = b.pair(lambda: estimate(split), lambda: estimate(one), base_jit=True)
+    b.row(f"integrator estimate, {n} maps in turn / 1 map", float(np.median(tn)),
+          float(np.median(t1)), "one map, all photons", 2.0,
+          float(np.median(tn) / np.median(t1)), f"time of {n} maps / 1 map", at_least=False,
+          rounds=tn / t1, visible_points=len(points))
 
 
 def _bench_builds(b: _Bench, scene, sizes):
@@ -190,8 +205,8 @@ def _bench_builds(b: _Bench, scene, sizes):
         device = _points(pts)
         sync(device)
         reps = b.repeats if size <= 1_000_000 else 1
-        ours = median_time(lambda: build_forest(device).records, reps)
-        base = median_time(lambda: cKDTree(pts, balanced_tree=True), reps, jit=False)
+        ours, base = b.pair(lambda: build_forest(device).records,
+                            lambda: cKDTree(pts, balanced_tree=True), reps)
         b.faster(f"build, {size:,} photons", ours, base, "cKDTree(balanced_tree=True)",
                  targets.get(j, 1.5))
         del device
@@ -237,25 +252,23 @@ def path_segments(scene, spp: int, max_depth: int = 2, seed: int = 0) -> int:
 def _bench_tracing(b: _Bench, scene_name, resolution, count, path_spp):
     """Row 5: photon tracing vs Mitsuba's path tracer, segments per second, both counted."""
     scene = load_scene(scene_name, resolution=resolution, spp=1)
-    trace_photons(scene, count // 10, 1, 1)                      # warm-up
-    t_trace, traced = float("inf"), None
-    for seed in (2, 3):
-        t0 = time.perf_counter()
-        traced = trace_photons(scene, count, 1, seed)
-        t_trace = min(t_trace, time.perf_counter() - t0)
-    ours_rate = traced.segments / t_trace
+    segments = trace_photons(scene, count, 1, 2).segments        # the same photons each round
     # Two baselines: path at max_depth 2 (camera, shadow and one bounce ray per sample: the
     # coherent camera rays flatter it) and at max_depth 8 without Russian roulette (mostly
-    # incoherent bounces, like a photon's), its samples cut to keep the same work.
+    # incoherent bounces, like a photon's), its samples cut to keep the same work. Each is
+    # timed in rounds with the tracer (the photons are on the host when it returns).
     for depth, spp in ((2, path_spp), (8, max(1, path_spp // 4))):
         path = mi.load_dict({"type": "path", "max_depth": depth, "rr_depth": 100})
         path_scene = load_scene(scene_name, resolution=resolution, spp=spp)
-        t_path = median_time(lambda: mi.render(path_scene, integrator=path, spp=spp),
-                             max(1, b.repeats // 2))
-        path_rate = path_segments(path_scene, spp, depth) / t_path
+        ours_t, path_t = b.pair(lambda: trace_photons(scene, count, 1, 2),
+                                lambda: mi.render(path_scene, integrator=path, spp=spp),
+                                base_jit=True)
+        path_count = path_segments(path_scene, spp, depth)
+        ours_rate, path_rate = segments / np.median(ours_t), path_count / np.median(path_t)
         b.row(f"tracing, {count:,} photons, vs path max_depth {depth}", ours_rate / 1e6,
               path_rate / 1e6, f"Mitsuba path (max_depth {depth}, no Russian roulette)", 0.8,
-              ours_rate / path_rate, "our rate / baseline rate", unit="M segments/s")
+              float(ours_rate / path_rate), "our rate / baseline rate", unit="M segments/s",
+              rounds=(segments / ours_t) / (path_count / path_t))
 
 
 def _bench_emitters(b: _Bench, count: int):
@@ -328,13 +341,15 @@ def run_bench(out_json=None, scene_name: str = "cornell_box", size: str = "full"
 def format_bench(result) -> str:
     lines = [f"{result['scene']}: {result['photons_stored']} photons stored, "
              f"{result['queries']} queries, r = {result['radius']:.4g}, "
-             f"{result['threads']} threads, medians of {result['repeats']} "
+             f"{result['threads']} threads, medians of {result['repeats']} rounds "
              f"(code {result['code']}, commit {result['commit'] or 'unknown'})",
-             f"{'benchmark':44} {'ours':>9} {'baseline':>9} {'ratio':>6} {'target':>8}  "
-             f"met  (ratio = ...; baseline)"]
+             f"{'benchmark':44} {'ours':>9} {'baseline':>9} {'ratio':>6} {'rounds':>11} "
+             f"{'target':>8}  met  (ratio = ...; baseline)"]
     for r in result["rows"]:
         target = f"{'>=' if r['target_is'] == 'at least' else '<='} {r['target']:g}"
+        lo, hi = r.get("ratio_range", (None, None))
+        spread = f"{lo:.2f}-{hi:.2f}" if lo is not None else "-"
         lines.append(f"{r['benchmark']:44} {r['ours']:9.4g} {r['baseline']:9.4g} "
-                     f"{r['ratio']:6.2f} {target:>8}  {'yes' if r['met'] else 'NO ':3}"
+                     f"{r['ratio']:6.2f} {spread:>11} {target:>8}  {'yes' if r['met'] else 'NO ':3}"
                      f"  ({r['ratio_meaning']}; {r['baseline_name']}, {r['unit']})")
     return "\n".join(lines)

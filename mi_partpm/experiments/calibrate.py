@@ -40,7 +40,7 @@ from hwsim.calibrate import (calibrate, cross_check, format_check, format_cross,
                              write_costs)
 from hwsim.workload import (SETS_FILE, WorkloadSet, load_workload_sets, save_workload_sets,
                             set_name)
-from .provenance import code_version
+from .provenance import code_version, simd_lanes
 
 # The measuring functions import Mitsuba and Dr.Jit (and need a variant) when they run:
 # refitting and formatting need neither.
@@ -114,6 +114,7 @@ def run_calibration(scene_name: str, out_dir, leaf_sizes: Sequence[int] = (8, 32
     finally:
         dr.set_thread_count(previous)
     used_threads = threads if threads is not None else previous
+    lanes = simd_lanes()
     sets = []
     for leaf in leaves:
         for f in fracs:
@@ -122,10 +123,10 @@ def run_calibration(scene_name: str, out_dir, leaf_sizes: Sequence[int] = (8, 32
             sets.append(WorkloadSet(set_name(leaf, f), {
                 "leaf_size": leaf, "radius": radii[f], "radius_fraction": f,
                 "photons_emitted": photons, "photons_stored": len(s.traced),
-                "threads": used_threads}, loads))
+                "threads": used_threads, "lanes": lanes}, loads))
     settings = {"photons": photons, "resolution": list(resolution), "spp": spp,
                 "repeats": repeats, "threads": used_threads, "seed": seed,
-                "maps": list(maps_list), "leaf_sizes": list(leaves),
+                "lanes": lanes, "maps": list(maps_list), "leaf_sizes": list(leaves),
                 "radius_fractions": list(fracs), "queries": int(s.queries),
                 "order": "interleaved: every repeat times every (set, n, map) once, in a "
                          "seeded random order"}

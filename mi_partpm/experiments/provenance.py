@@ -83,6 +83,29 @@ def machine() -> dict:
             "drjit": dr.__version__, "threads": dr.thread_count()}
 
 
+def simd_lanes() -> int:
+    """Queries that run side by side in one packet of Dr.Jit's kernels on this machine: a
+    CUDA warp's 32, or the LLVM backend's vector width, which Dr.Jit picks from the host's
+    instruction set (16 lanes of float32 with AVX-512, 8 with AVX, 4 otherwise)."""
+    import mitsuba as mi
+    if mi.variant() and mi.variant().startswith("cuda"):
+        return 32
+    flags = set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    flags = set(line.split(":", 1)[1].split())
+                    break
+    except OSError:
+        pass
+    if "avx512f" in flags:
+        return 16
+    if "avx" in flags:
+        return 8
+    return 4
+
+
 def scene_digest(scene: str, data_dir=None) -> str:
     """SHA-256 (16 hex digits) of a scene's file and the data files it names (built-in name
     or path), for caches that depend on the scene and not on the code."""

@@ -211,6 +211,9 @@ def format_bench(results: dict) -> str:
             ratio = f"{r['ratio']:.2f}x"
         else:
             ratio = f"{r['ratio']:.2f}"
+        if ratio and r.get("ratio_range"):
+            lo, hi = r["ratio_range"]
+            ratio += f" ({lo:.2f}-{hi:.2f})"
         target = (f"{r['target']:g}x" if r["target_is"] == "at least"
                   else f"<= {r['target']:g}")
         rows.append([r["benchmark"], f"{_value(r['ours'])} {unit}",
