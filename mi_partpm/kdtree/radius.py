@@ -26,6 +26,10 @@ __all__ = ["radius_query", "QueryStats", "order_queries", "ORDERS"]
 #: returns results in the caller's order); "given" walks them as they come.
 ORDERS = ("morton", "given")
 
+#: Photons tested per iteration of a leaf's scan loop: fewer iterations, each testing that
+#: many photons side by side, spend less on the loop's own bookkeeping per photon.
+SCAN_UNROLL = 2
+
 #: Below this many queries the sort costs more than it saves.
 SORT_FROM = 4096
 
@@ -226,17 +230,20 @@ def _walk(forest, p, r, contribution, result_type, active, first, stop, with_sta
         i = dr.gather(mi.UInt32, forest.leaf_table, leaf, at_leaf)
         end = dr.select(at_leaf, dr.gather(mi.UInt32, forest.leaf_table, leaf + 1, at_leaf), i)
         while dr.hint(i < end, label="partpm_radius_scan"):
-            if dr.hint(with_stats, mode="scalar"):
-                photons_tested += 1
-            dist2 = dr.squared_norm(photon_position(forest, i) - p)
-            found = dist2 <= r2
-            if dr.hint(accept is not None, mode="scalar"):
-                found &= accept(i, found, state)
-            if found:
+            for u in range(SCAN_UNROLL):
+                j = i + u
+                valid = j < end
                 if dr.hint(with_stats, mode="scalar"):
-                    photons_found += 1
-                total += contribution(i, dist2, found, state)
-            i += 1
+                    photons_tested += dr.select(valid, 1, 0)
+                dist2 = dr.squared_norm(photon_position(forest, j, valid) - p)
+                found = valid & (dist2 <= r2)
+                if dr.hint(accept is not None, mode="scalar"):
+                    found &= accept(j, found, state)
+                if found:
+                    if dr.hint(with_stats, mode="scalar"):
+                        photons_found += 1
+                    total += contribution(j, dist2, found, state)
+            i += SCAN_UNROLL
         going_down = mi.Bool(False)
 
     return total, QueryStats(nodes_visited, photons_tested, photons_found)
