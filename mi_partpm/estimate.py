@@ -129,6 +129,10 @@ class _Estimator:
                               max_bounce if self.bounded else 0))
         self.f_plain = bsdf.eval(self.ctx, si, mi.Vector3f(0, 0, facing),
                                  self.active & self.lane.plain)
+        # Where every query is plain diffuse (the common case), the walk's kernel evaluates
+        # no BSDF per photon: even masked off, a BSDF call in the loop costs its dispatch over
+        # the scene's BSDFs for every photon found.
+        self.all_plain = not bool(dr.any(self.active & ~self.lane.plain)[0])
 
     def contribution(self, i, dist2, found, lane: _Lane):
         """f_r * power of photon ``i`` (power alone for plain diffuse), weighted by the kernel
@@ -137,6 +141,10 @@ class _Estimator:
         wi_photon = maps.photon_direction(i, found)
         power = maps.photon_power(i, found)
         same_side = dr.dot(wi_photon, lane.n_view) > 0
+        if self.all_plain:
+            value = dr.select(same_side, power, 0.0)
+            return value * self.weight(dist2, lane.radius2) if self.weight is not None \
+                else value
         wo = lane.si.to_local(wi_photon)
         cos = dr.abs(mi.Frame3f.cos_theta(wo))
         general = found & ~lane.plain & (cos > 1e-6)
