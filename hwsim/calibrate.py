@@ -21,6 +21,14 @@ density, and costs fitted on one scene on plain sums are biased on the other. A 
 processing element pays for its own counts only: hwsim's PE model runs the costs on the
 plain per-query counts.
 
+**Caches.** A map larger than the CPU's caches costs more per action: its nodes and records
+come from further away. Where a workload records the CPU's L1 data cache (``l1_bytes``), two
+more columns count nodes and tests times the doublings of the map's bytes beyond it,
+log2(map bytes / L1) where positive, with costs ``per_node_cache`` and ``per_test_cache``
+(seconds per action per doubling). Without ``l1_bytes`` those columns are 0 and the two
+costs are not part of the model. They are the CPU's memory hierarchy: hwsim's PE model has
+its own (SRAM, DRAM) and runs on the four costs above.
+
 **The design.** Within one speedup run (one leaf size, one radius) nodes, tests and found
 photons fall together as n grows, so the columns are nearly collinear and the fit cannot
 tell the costs apart (it may put one of them at 0 and another absorbs it). ``partpm
@@ -63,9 +71,13 @@ __all__ = ["Costs", "Fit", "COST_NAMES", "FEATURES", "WEIGHTINGS", "GOAL", "pack
            "synthetic_workloads"]
 
 #: The fitted costs, in the order of the feature columns.
-COST_NAMES = ("per_node", "per_test", "per_found", "fixed")
+COST_NAMES = ("per_node", "per_test", "per_found", "fixed", "per_node_cache",
+              "per_test_cache")
 #: What each column counts, per map.
-FEATURES = ("nodes visited", "photons tested", "photons found", "map runs")
+FEATURES = ("nodes visited", "photons tested", "photons found", "map runs",
+            "nodes x doublings beyond L1", "tests x doublings beyond L1")
+#: The costs of the CPU's caches: in the model only where the workloads record ``l1_bytes``.
+CACHE_COSTS = ("per_node_cache", "per_test_cache")
 #: Row weightings of the fit: 1 / t (relative errors) or 1 (absolute errors).
 WEIGHTINGS = ("relative", "absolute")
 #: What a cross-scene prediction must reach: R^2, largest relative error, every cost > 0.
@@ -77,15 +89,18 @@ SYNTHETIC_NODE_BYTES, SYNTHETIC_RECORD_BYTES = 8, 28
 
 @dataclass
 class Costs:
-    """Seconds per node visited, photon tested, photon found, and per map run."""
+    """Seconds per node visited, photon tested, photon found, and per map run; and per node
+    and per test for each doubling of the map beyond the L1 data cache."""
 
     per_node: float
     per_test: float
     per_found: float
     fixed: float
+    per_node_cache: float = 0.0
+    per_test_cache: float = 0.0
 
     def as_array(self) -> np.ndarray:
-        return np.array([self.per_node, self.per_test, self.per_found, self.fixed])
+        return np.array([getattr(self, name) for name in COST_NAMES])
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         return x @ self.as_array()
@@ -99,21 +114,28 @@ class Fit:
     standard_errors: dict      # cost -> seconds (None for a cost fitted to 0)
     intervals: dict            # cost -> (low, high) bootstrap 95% interval, seconds
     zero_share: dict           # cost -> share of bootstrap fits that put it at 0
-    zero: list                 # costs fitted to 0
+    zero: list                 # costs fitted to 0 (of those in the model)
     weighting: str
     rows: int
     sets: int
     design: dict
     self_check: dict
+    unused: list = None        # cache costs not in the model (the workloads lack l1_bytes)
 
     @property
     def all_positive(self) -> bool:
         return not self.zero
 
     def as_dict(self) -> dict:
-        return {"costs": self.costs.__dict__, "standard_errors": self.standard_errors,
-                "intervals": {k: list(v) for k, v in self.intervals.items()},
-                "zero_share": self.zero_share, "zero": self.zero,
+        unused = set(self.unused or [])
+
+        def modelled(d):
+            return {k: v for k, v in d.items() if k not in unused}
+        return {"costs": modelled(self.costs.__dict__),
+                "standard_errors": modelled(self.standard_errors),
+                "intervals": {k: list(v) for k, v in modelled(self.intervals).items()},
+                "zero_share": modelled(self.zero_share), "zero": self.zero,
+                **({"unused": sorted(unused)} if unused else {}),
                 "all_positive": self.all_positive, "weighting": self.weighting,
                 "rows": self.rows, "sets": self.sets, "design": self.design,
                 "self": self.self_check}
@@ -151,21 +173,33 @@ def packet_sum(counts, lanes: int | None = 1) -> float:
     return total
 
 
-def features(loads, lanes: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def cache_doublings(map_bytes, l1_bytes) -> float:
+    """log2(map_bytes / l1_bytes) where the map outgrows the L1 data cache, else 0 (and 0
+    where ``l1_bytes`` is unknown)."""
+    if not l1_bytes or map_bytes <= l1_bytes:
+        return 0.0
+    return float(np.log2(float(map_bytes) / float(l1_bytes)))
+
+
+def features(loads, lanes: int | None = None,
+             l1_bytes: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(X, t, n) of one workload ``{n: MapWorkloads}``: one row per map of every n, its
-    counts summed over its queries (per packet of ``lanes``, :func:`packet_sum`) and 1
-    (:data:`FEATURES`); its median measured time; its n."""
+    counts summed over its queries (per packet of ``lanes``, :func:`packet_sum`), 1, and
+    nodes and tests times the map's doublings beyond ``l1_bytes`` (:data:`FEATURES`); its
+    median measured time; its n."""
     rows, times, ns = [], [], []
     for n, w in sorted(loads.items()):
         if w.map_seconds.size == 0:
             raise ValueError(f"workload n = {n} has no measured map_seconds to calibrate on")
         for m in range(n):
-            rows.append([packet_sum(w.nodes_visited[m], lanes),
-                         packet_sum(w.photons_tested[m], lanes),
-                         packet_sum(w.photons_found[m], lanes), 1.0])
+            nodes = packet_sum(w.nodes_visited[m], lanes)
+            tests = packet_sum(w.photons_tested[m], lanes)
+            level = cache_doublings(w.map_bytes[m], l1_bytes)
+            rows.append([nodes, tests, packet_sum(w.photons_found[m], lanes), 1.0,
+                         nodes * level, tests * level])
             times.append(float(np.median(w.map_seconds[m])))
             ns.append(n)
-    return np.array(rows).reshape(-1, 4), np.array(times), np.array(ns)
+    return (np.array(rows).reshape(-1, len(COST_NAMES)), np.array(times), np.array(ns))
 
 
 def set_features(data) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list]:
@@ -173,7 +207,7 @@ def set_features(data) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, 
     sets = _as_sets(data)
     xs, ts, ns, which = [], [], [], []
     for i, s in enumerate(sets):
-        x, t, n = features(s.loads, s.meta.get("lanes"))
+        x, t, n = features(s.loads, s.meta.get("lanes"), s.meta.get("l1_bytes"))
         xs.append(x)
         ts.append(t)
         ns.append(n)
@@ -247,9 +281,14 @@ def calibrate(data, weighting: str = "relative", resamples: int = 400,
                          f"{len(COST_NAMES)} costs, the workloads hold {t.size}")
     a, b = _weighted(x, t, weighting)
     coef = _nnls(a, b)
-    boot = _bootstrap(a, b, resamples, seed) if resamples else np.empty((0, 4))
+    boot = (_bootstrap(a, b, resamples, seed) if resamples
+            else np.empty((0, len(COST_NAMES))))
+    unused = [name for name, col in zip(COST_NAMES, x.T) if name in CACHE_COSTS
+              and not np.any(col)]
     intervals, zero_share = {}, {}
     for j, name in enumerate(COST_NAMES):
+        if name in unused:
+            continue
         if boot.size:
             intervals[name] = (float(np.percentile(boot[:, j], 2.5)),
                                float(np.percentile(boot[:, j], 97.5)))
@@ -257,9 +296,11 @@ def calibrate(data, weighting: str = "relative", resamples: int = 400,
         else:
             intervals[name], zero_share[name] = (math.nan, math.nan), math.nan
     costs = Costs(*coef.tolist())
-    return Fit(costs=costs, standard_errors=_standard_errors(a, b, coef),
+    errors = {k: v for k, v in _standard_errors(a, b, coef).items() if k not in unused}
+    return Fit(costs=costs, standard_errors=errors,
                intervals=intervals, zero_share=zero_share,
-               zero=[n for n, c in zip(COST_NAMES, coef) if not c > 0],
+               zero=[n for n, c in zip(COST_NAMES, coef) if not c > 0 and n not in unused],
+               unused=unused,
                weighting=weighting, rows=int(t.size), sets=len(sets),
                design=design(sets, weighting), self_check=check(costs, sets))
 
@@ -267,10 +308,14 @@ def calibrate(data, weighting: str = "relative", resamples: int = 400,
 def design(data, weighting: str = "relative") -> dict:
     """How far apart the design puts the costs' columns, over every map of ``data``:
     the correlations of nodes, tests and found photons per map (``correlation``, 3 x 3), each
-    column's variance inflation factor against the other three with the constant
-    (1 / (1 - R^2) of that regression; 1: independent, over 10: nearly collinear), and the
-    condition number of the weighted matrix with unit-norm columns that NNLS solves."""
+    column's variance inflation factor against the other columns in the model (the constant
+    and, where modelled, the cache columns; 1 / (1 - R^2) of that regression; 1:
+    independent, over 10: nearly collinear), and the condition number of the weighted matrix
+    with unit-norm columns that NNLS solves."""
     x, t, *_ = set_features(data)
+    kept = [j for j, name in enumerate(COST_NAMES)
+            if name not in CACHE_COSTS or np.any(x[:, j])]
+    x = x[:, kept]
     counts = x[:, :3]
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = np.corrcoef(counts.T) if counts.shape[0] > 1 else np.full((3, 3), np.nan)
@@ -285,7 +330,7 @@ def design(data, weighting: str = "relative") -> dict:
     a, _ = _weighted(x, t, weighting)
     norm = np.linalg.norm(a, axis=0)
     cond = float(np.linalg.cond(a / np.where(norm > 0, norm, 1.0)))
-    return {"columns": list(FEATURES), "correlation": np.round(corr, 6).tolist(),
+    return {"columns": [FEATURES[j] for j in kept], "correlation": np.round(corr, 6).tolist(),
             "vif": vif, "condition_number": cond, "weighting": weighting,
             "rows": int(t.size)}
 
@@ -381,16 +426,21 @@ def write_costs(path, fit_: Fit, *, scene: str, threads: int | None, source: str
              f"seconds_per_test = {_toml_value(c.per_test)}",
              f"seconds_per_found = {_toml_value(c.per_found)}",
              f"seconds_per_map = {_toml_value(c.fixed)}",
-             "", "[standard_error]                # seconds; absent for a cost fitted to 0"]
-    for name in COST_NAMES:
+             "# The CPU's caches (per action per doubling of the map beyond L1): not run by the",
+             "# PE model, whose memory is its own SRAM and DRAM."]
+    modelled = [n for n in CACHE_COSTS if n not in (fit_.unused or [])]
+    lines += [f"{_CACHE_KEYS[n]} = {_toml_value(getattr(c, n))}" for n in modelled]
+    lines += ["", "[standard_error]                # seconds; absent for a cost fitted to 0"]
+    keys = {**_FILE_KEYS, **{n: _CACHE_KEYS[n] for n in modelled}}
+    for name in keys:
         se = fit_.standard_errors.get(name)
         if se is not None:
-            lines.append(f"{_FILE_KEYS[name]} = {_toml_value(se)}")
+            lines.append(f"{keys[name]} = {_toml_value(se)}")
     lines += ["", "[interval]                      # bootstrap 2.5 and 97.5 percentiles"]
-    for name in COST_NAMES:
+    for name in keys:
         lo, hi = fit_.intervals[name]
         if lo == lo and hi == hi:
-            lines.append(f"{_FILE_KEYS[name]} = [{_toml_value(lo)}, {_toml_value(hi)}]")
+            lines.append(f"{keys[name]} = [{_toml_value(lo)}, {_toml_value(hi)}]")
     Path(path).write_text("\n".join(lines) + "\n")
     return Path(path)
 
@@ -398,6 +448,9 @@ def write_costs(path, fit_: Fit, *, scene: str, threads: int | None, source: str
 #: Cost name -> its key in the costs file.
 _FILE_KEYS = {"per_node": "seconds_per_node", "per_test": "seconds_per_test",
               "per_found": "seconds_per_found", "fixed": "seconds_per_map"}
+#: The cache costs' keys (written where modelled; the PE model does not read them).
+_CACHE_KEYS = {"per_node_cache": "seconds_per_node_per_doubling",
+               "per_test_cache": "seconds_per_test_per_doubling"}
 
 
 def read_costs(path) -> dict:
@@ -444,8 +497,12 @@ def format_fit(f: dict, scene: str = "") -> list:
              f"{corr[0][1]:.3f}, nodes-found {corr[0][2]:.3f}, tests-found {corr[1][2]:.3f}; "
              f"VIF " + ", ".join(f"{k} {v:.1f}" for k, v in d["vif"].items()) +
              f"; condition number {d['condition_number']:.3g}"]
-    unit = {"per_node": "ns/node", "per_test": "ns/test", "per_found": "ns/found"}
+    unit = {"per_node": "ns/node", "per_test": "ns/test", "per_found": "ns/found",
+            "per_node_cache": "ns/node per doubling beyond L1",
+            "per_test_cache": "ns/test per doubling beyond L1"}
     for name in COST_NAMES:
+        if name in f.get("unused", []) or name not in f["costs"]:
+            continue
         c, se = f["costs"][name], f["standard_errors"].get(name)
         lo, hi = f["intervals"][name]
         if name == "fixed":

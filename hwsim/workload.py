@@ -7,7 +7,8 @@ them with :func:`load_workloads` and :func:`load_workload_sets`.
 Version 2 adds, in ``meta.json``, the radius as a fraction of the scene (``radius_fraction``)
 and the CPU threads the times were measured with (``threads``); version 3 the SIMD lanes that
 ran each query (``lanes``: queries walk the tree side by side in packets of that many, in the
-order of the per-query arrays). Older files still load (those keys then read as null).
+order of the per-query arrays) and the CPU's L1 data cache (``l1_bytes``). Older files still
+load (those keys then read as null).
 
 NumPy and JSON only: hwsim never imports Mitsuba.
 """
@@ -26,7 +27,7 @@ __all__ = ["MapWorkloads", "WorkloadSet", "load_workloads", "save_workloads",
 #: The version written.
 FORMAT_VERSION = 3
 #: The versions read: 1 lacks ``radius_fraction`` and ``threads``, 1 and 2 lack ``lanes``
-#: (read as None).
+#: and ``l1_bytes`` (read as None).
 READS_VERSIONS = (1, 2, 3)
 #: The index of a directory of calibration sets.
 SETS_FILE = "sets.json"
@@ -84,7 +85,7 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
     if meta.get("version") not in READS_VERSIONS:
         raise ValueError(f"{meta_path}: format version {meta.get('version')!r}, this hwsim "
                          f"reads versions {', '.join(map(str, READS_VERSIONS))}")
-    for key in ("radius_fraction", "threads", "leaf_size", "lanes"):
+    for key in ("radius_fraction", "threads", "leaf_size", "lanes", "l1_bytes"):
         meta.setdefault(key, None)
     loads = {}
     for n_text, name in meta["files"].items():
@@ -106,14 +107,18 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
 def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: float = 0.0,
                    photons_emitted: int = 0, photons_stored: int | None = None,
                    leaf_size: int | None = None, radius_fraction: float | None = None,
-                   threads: int | None = None, lanes: int | None = None) -> Path:
+                   threads: int | None = None, lanes: int | None = None,
+                   l1_bytes: int | None = None) -> Path:
     """Write ``{n: MapWorkloads}`` in the WORKLOAD.md format. The bytes of a photon record
     and of a tree node are the workloads' own (the same for every n). ``radius_fraction``:
     the radius over the scene's longest side; ``threads``: the CPU threads that measured
     ``map_seconds``; ``lanes``: the SIMD lanes of one packet of queries in those runs, the
-    per-query arrays being in the order the queries ran (None: unknown, or not measured)."""
+    per-query arrays being in the order the queries ran; ``l1_bytes``: the L1 data cache of
+    the CPU that ran them (None: unknown, or not measured)."""
     if lanes is not None and (not isinstance(lanes, int) or lanes < 1):
         raise ValueError(f"lanes must be an integer >= 1 or None, got {lanes!r}")
+    if l1_bytes is not None and (not isinstance(l1_bytes, int) or l1_bytes < 1):
+        raise ValueError(f"l1_bytes must be an integer >= 1 or None, got {l1_bytes!r}")
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     queries = {w.queries for w in loads.values()}
@@ -128,7 +133,7 @@ def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: 
     info = {"version": FORMAT_VERSION, "scene": scene, "queries": queries.pop(),
             "radius": radius, "photons_emitted": photons_emitted,
             "photons_stored": photons_stored, "leaf_size": leaf_size,
-            "radius_fraction": radius_fraction, "threads": threads, "lanes": lanes,
+            "radius_fraction": radius_fraction, "threads": threads, "lanes": lanes, "l1_bytes": l1_bytes,
             "bytes_per_photon": int(bytes_per_photon), "bytes_per_node": int(bytes_per_node),
             "maps": sorted(loads), "files": {str(n): f"n{n}.npz" for n in sorted(loads)}}
     for n, w in loads.items():
@@ -171,7 +176,7 @@ def save_workload_sets(directory, sets, *, scene: str, settings: dict | None = N
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     keys = ("radius", "photons_emitted", "photons_stored", "leaf_size", "radius_fraction",
-            "threads", "lanes")
+            "threads", "lanes", "l1_bytes")
     index = []
     for s in sets:
         save_workloads(d / s.name, s.loads, scene=scene,

@@ -322,6 +322,8 @@ def _what_the_noise_explains(loads, clean):
     with M = I - X G (the residuals' map), which is 1 - R^2 of a correct fit, on average."""
     from hwsim.calibrate import features
     x, t, _ = features(loads)
+    x = x[:, :4]                     # no cache columns: the workloads record no l1_bytes
+    assert not np.any(features(loads)[0][:, 4:])
     w = 1.0 / t
     g = np.linalg.pinv(x * w[:, None]) * w[None, :]
     variance = (CAL_NOISE * clean) ** 2
@@ -454,7 +456,8 @@ def test_one_speedup_run_cannot_tell_the_costs_apart_and_the_grid_can():
     assert grid.design["condition_number"] < one.design["condition_number"] / 5
     assert grid.all_positive and grid.zero == []
     assert all(v == 0.0 for v in grid.zero_share.values())
-    got = grid.costs.as_array()
+    got = grid.costs.as_array()[:4]          # the synthetic sets record no L1: no cache costs
+    assert grid.unused == ["per_node_cache", "per_test_cache"]
     se = np.array([grid.standard_errors[k] for k in ("per_node", "per_test", "per_found",
                                                       "fixed")])
     assert np.all(np.abs(got - CAL_TRUTH) < 4 * se), (got - CAL_TRUTH) / se
@@ -557,6 +560,29 @@ def test_packet_sums_count_what_a_packet_runs_until_its_slowest_lane():
     np.testing.assert_array_equal(t, t2)
     assert np.all(packed[:, :3] >= plain[:, :3]) and np.any(packed[:, :3] > plain[:, :3])
     assert packed[0, 0] == packet_sum(w[1].nodes_visited[0], 16)
+
+
+def test_cache_columns_count_the_doublings_of_a_map_beyond_l1():
+    """By hand: a map of 4x the L1 cache is 2 doublings beyond it, one that fits is 0, and
+    without a recorded L1 the columns are 0 and their costs stay out of the model (not
+    flagged as fitted to 0); with one, the cache costs are fitted like the others."""
+    from hwsim.calibrate import cache_doublings, calibrate, features
+    assert cache_doublings(4 * 48_000, 48_000) == 2.0
+    assert cache_doublings(48_000, 48_000) == cache_doublings(1000, 48_000) == 0.0
+    assert cache_doublings(10**9, None) == 0.0
+    sets = _scene_sets(seed=3, leaf_sizes=(8, 32), radii=(0.5, 1.0), maps=(1, 2, 4))
+    w = sets[0].loads
+    x, _, _ = features(w, None, 1024)
+    level = np.log2(w[1].map_bytes[0] / 1024)
+    assert level > 0
+    assert x[0, 4] == pytest.approx(x[0, 0] * level) and x[0, 5] == pytest.approx(x[0, 1] * level)
+    plain = calibrate(sets, resamples=10)
+    assert plain.unused == ["per_node_cache", "per_test_cache"]
+    assert "per_node_cache" not in plain.as_dict()["costs"] and plain.all_positive
+    for st in sets:
+        st.meta["l1_bytes"] = 1024
+    cached = calibrate(sets, resamples=10)
+    assert not cached.unused and "per_node_cache" in cached.as_dict()["costs"]
 
 
 def _costs_file(tmp_path, grid_sets=None, threads=2):

@@ -40,7 +40,7 @@ from hwsim.calibrate import (calibrate, cross_check, format_check, format_cross,
                              write_costs)
 from hwsim.workload import (SETS_FILE, WorkloadSet, load_workload_sets, save_workload_sets,
                             set_name)
-from .provenance import code_version, simd_lanes
+from .provenance import code_version, l1_data_bytes, simd_lanes
 
 # The measuring functions import Mitsuba and Dr.Jit (and need a variant) when they run:
 # refitting and formatting need neither.
@@ -114,7 +114,7 @@ def run_calibration(scene_name: str, out_dir, leaf_sizes: Sequence[int] = (8, 32
     finally:
         dr.set_thread_count(previous)
     used_threads = threads if threads is not None else previous
-    lanes = simd_lanes()
+    lanes, l1 = simd_lanes(), l1_data_bytes()
     sets = []
     for leaf in leaves:
         for f in fracs:
@@ -123,10 +123,10 @@ def run_calibration(scene_name: str, out_dir, leaf_sizes: Sequence[int] = (8, 32
             sets.append(WorkloadSet(set_name(leaf, f), {
                 "leaf_size": leaf, "radius": radii[f], "radius_fraction": f,
                 "photons_emitted": photons, "photons_stored": len(s.traced),
-                "threads": used_threads, "lanes": lanes}, loads))
+                "threads": used_threads, "lanes": lanes, "l1_bytes": l1}, loads))
     settings = {"photons": photons, "resolution": list(resolution), "spp": spp,
                 "repeats": repeats, "threads": used_threads, "seed": seed,
-                "lanes": lanes, "maps": list(maps_list), "leaf_sizes": list(leaves),
+                "lanes": lanes, "l1_bytes": l1, "maps": list(maps_list), "leaf_sizes": list(leaves),
                 "radius_fractions": list(fracs), "queries": int(s.queries),
                 "order": "interleaved: every repeat times every (set, n, map) once, in a "
                          "seeded random order"}
@@ -255,17 +255,21 @@ def format_readme_table(result) -> str:
     if not cross:
         raise ValueError("this calibration has no cross-scene check: run 'partpm calibrate "
                          "SCENE --check OTHER_DIR'")
-    head = ("| fitted on | ns / node | ns / test | ns / found | ms / map run | R^2 on itself "
-            "| largest error | predicts | R^2 | largest error | median error | goal met |")
-    lines = [head, "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: | ---: "
-                   "| --- |"]
+    head = ("| fitted on | ns / node | ns / test | ns / found | ms / map run | ns / node, per "
+            "doubling beyond L1 | ns / test, per doubling | R^2 on itself | largest error | "
+            "predicts | R^2 | largest error | median error | goal met |")
+    lines = [head, "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: "
+                   "| ---: | ---: | --- |"]
     for d in cross["directions"]:
         f, p = d["fit"], d["prediction"]
         c = f["costs"]
         cost = [f"{c[k] * 1e9:.2f}" + (" (0!)" if k in f["zero"] else "")
                 for k in ("per_node", "per_test", "per_found")]
+        cache = [(f"{c[k] * 1e9:.3f}" + (" (0!)" if k in f["zero"] else "")) if k in c
+                 else "not modelled" for k in ("per_node_cache", "per_test_cache")]
         lines.append(
             f"| {d['fit_on']} | {' | '.join(cost)} | {c['fixed'] * 1e3:.1f} | "
+            f"{' | '.join(cache)} | "
             f"{f['self']['r2']:.3f} | {f['self']['max_rel_error'] * 100:.0f}% | {d['predicts']} "
             f"| {p['r2']:.3f} | {p['max_rel_error'] * 100:.0f}% | "
             f"{p['median_rel_error'] * 100:.1f}% | {'yes' if d['goal']['met'] else 'no'} |")

@@ -106,6 +106,21 @@ def simd_lanes() -> int:
     return 4
 
 
+def l1_data_bytes():
+    """Bytes of one core's L1 data cache (Linux's sysfs), or None where it cannot be read."""
+    base = Path("/sys/devices/system/cpu/cpu0/cache")
+    try:
+        for index in sorted(base.glob("index*")):
+            if (index / "level").read_text().strip() == "1" and \
+                    (index / "type").read_text().strip() in ("Data", "Unified"):
+                text = (index / "size").read_text().strip().upper()
+                scale = {"K": 1 << 10, "M": 1 << 20}.get(text[-1:], 1)
+                return int(text.rstrip("KM")) * scale
+    except (OSError, ValueError):
+        pass
+    return None
+
+
 def scene_digest(scene: str, data_dir=None) -> str:
     """SHA-256 (16 hex digits) of a scene's file and the data files it names (built-in name
     or path), for caches that depend on the scene and not on the code."""

@@ -34,7 +34,7 @@ import mitsuba as mi
 import numpy as np
 
 from hwsim.workload import MapWorkloads, save_workloads
-from .provenance import code_version, simd_lanes
+from .provenance import code_version, l1_data_bytes, simd_lanes
 from ..estimate import radiance_estimate
 from ..eyepath import first_hits
 from ..kdtree import LEAF_SIZE, NODE_BYTES
@@ -267,7 +267,8 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
         save_workloads(out / "workloads", loads, scene=scene_name, radius=s.radius,
                        photons_emitted=photons, photons_stored=len(s.traced),
                        leaf_size=LEAF_SIZE, radius_fraction=radius_fraction,
-                       threads=dr.thread_count(), lanes=simd_lanes())
+                       threads=dr.thread_count(), lanes=simd_lanes(),
+                       l1_bytes=l1_data_bytes())
     return result
 
 
