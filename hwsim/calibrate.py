@@ -4,6 +4,7 @@ The measured CPU time of map m answering all Q queries (``map_seconds`` in a wor
 median over its repeats) is modelled as
 
     t_m = a * sum_q nodes + b * sum_q tested + c * sum_q found + d
+          (+ the two cache terms below, where the workloads record the L1 cache)
 
 with a, b, c, d >= 0: seconds per node visited, per photon tested, per photon found, and
 per map run (the fixed cost of one map answering its queries: on the CPU, recording and
@@ -14,7 +15,9 @@ by side in packets of ``lanes`` SIMD lanes (16 with AVX-512), and a packet loops
 slowest lane is done, so a lane that finished early costs as much as the slowest one. Where a
 workload records its ``lanes`` (WORKLOAD.md), each sum over queries is therefore taken per
 packet of consecutive queries, in the order they ran, as ``lanes`` times the packet's largest
-count (:func:`packet_sum`): the counts the CPU's loops paid for. This matters across scenes:
+count (:func:`packet_sum`). This approximates what the CPU's loops paid for from below: the
+walk's loops are nested (a descent and a leaf scan per leaf), and a packet pays the slowest
+lane of every inner loop, not only of the whole walk. This matters across scenes:
 where neighbouring hit points find very different numbers of photons (the Cornell box's
 caustic beside its walls), the plain sums undercount the work more than on a scene of even
 density, and costs fitted on one scene on plain sums are biased on the other. A scalar
@@ -259,7 +262,7 @@ def _standard_errors(a, b, coef) -> dict:
 
 
 def _bootstrap(a, b, resamples, seed):
-    """NNLS of ``resamples`` bootstrap resamples of the rows: (resamples, 4) costs."""
+    """NNLS of ``resamples`` bootstrap resamples of the rows: (resamples, columns) costs."""
     rng = np.random.default_rng(seed)
     m = b.size
     out = np.empty((resamples, a.shape[1]))
@@ -276,15 +279,20 @@ def calibrate(data, weighting: str = "relative", resamples: int = 400,
     resamples of the rows), the costs fitted to 0, the design's conditioning, and the fit's
     check on its own rows."""
     x, t, _, _, sets = set_features(data)
-    if t.size < len(COST_NAMES) + 1:
-        raise ValueError(f"needs >= {len(COST_NAMES) + 1} measured maps for its "
-                         f"{len(COST_NAMES)} costs, the workloads hold {t.size}")
+    unused = [name for name, col in zip(COST_NAMES, x.T) if name in CACHE_COSTS
+              and not np.any(col)]
+    costs_fitted = len(COST_NAMES) - len(unused)
+    if t.size < costs_fitted + 1:
+        raise ValueError(f"needs >= {costs_fitted + 1} measured maps for its "
+                         f"{costs_fitted} costs, the workloads hold {t.size}")
+    recorded = [s.meta.get("l1_bytes") is not None for s in sets]
+    if any(recorded) and not all(recorded):
+        raise ValueError("some workloads record the L1 cache (l1_bytes) and some do not: "
+                         "their cache costs cannot be fitted together (measure them again)")
     a, b = _weighted(x, t, weighting)
     coef = _nnls(a, b)
     boot = (_bootstrap(a, b, resamples, seed) if resamples
             else np.empty((0, len(COST_NAMES))))
-    unused = [name for name, col in zip(COST_NAMES, x.T) if name in CACHE_COSTS
-              and not np.any(col)]
     intervals, zero_share = {}, {}
     for j, name in enumerate(COST_NAMES):
         if name in unused:
@@ -406,8 +414,9 @@ def _toml_value(v) -> str:
 
 def write_costs(path, fit_: Fit, *, scene: str, threads: int | None, source: str = ""):
     """Write ``fit_``'s costs as the file ``[pe] fitted_costs`` names (TOML): seconds per
-    node, test, found and map run as measured with ``threads`` CPU threads, their standard
-    errors and intervals, and where they come from."""
+    node, test, found and map run as measured with ``threads`` CPU threads (and, where
+    modelled, the two cache costs, which the PE model does not read), their standard errors
+    and intervals, and where they come from."""
     from pathlib import Path
     c = fit_.costs
     lines = ["# Costs fitted by hwsim.calibrate to measured per-map CPU times (partpm "

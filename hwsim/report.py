@@ -112,14 +112,14 @@ def calibration(loads, meta, check_dir=None) -> dict:
     ``zero`` which costs it could not identify (``partpm calibrate`` records the sets that
     can)."""
     from .calibrate import calibrate, check
-    from .workload import load_workload_sets
+    from .workload import WorkloadSet, load_workload_sets
     if any(w.map_seconds.size == 0 for w in loads.values()):
         return {}
-    maps = sum(w.n for w in loads.values())
-    if maps < 5:
-        return {"skipped": f"needs >= 5 measured maps for its 4 costs, the "
-                           f"workloads hold {maps}"}
-    f = calibrate(loads)
+    try:
+        # The workload's own meta: its packets' lanes and L1 cache enter the fit.
+        f = calibrate(WorkloadSet(meta.get("scene", "workloads"), meta, loads))
+    except ValueError as e:
+        return {"skipped": str(e)}
     out = {"fit_on": meta.get("scene", ""), **f.as_dict()}
     if check_dir is not None:
         other_index, other = load_workload_sets(check_dir)

@@ -87,6 +87,10 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
                          f"reads versions {', '.join(map(str, READS_VERSIONS))}")
     for key in ("radius_fraction", "threads", "leaf_size", "lanes", "l1_bytes"):
         meta.setdefault(key, None)
+    for key in ("lanes", "l1_bytes"):
+        v = meta[key]
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise ValueError(f"{meta_path}: {key} must be an integer >= 1 or null, got {v!r}")
     loads = {}
     for n_text, name in meta["files"].items():
         n = int(n_text)
@@ -115,10 +119,12 @@ def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: 
     ``map_seconds``; ``lanes``: the SIMD lanes of one packet of queries in those runs, the
     per-query arrays being in the order the queries ran; ``l1_bytes``: the L1 data cache of
     the CPU that ran them (None: unknown, or not measured)."""
-    if lanes is not None and (not isinstance(lanes, int) or lanes < 1):
-        raise ValueError(f"lanes must be an integer >= 1 or None, got {lanes!r}")
-    if l1_bytes is not None and (not isinstance(l1_bytes, int) or l1_bytes < 1):
-        raise ValueError(f"l1_bytes must be an integer >= 1 or None, got {l1_bytes!r}")
+    for key, v in (("lanes", lanes), ("l1_bytes", l1_bytes)):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
+                              or v < 1):
+            raise ValueError(f"{key} must be an integer >= 1 or None, got {v!r}")
+    lanes = int(lanes) if lanes is not None else None
+    l1_bytes = int(l1_bytes) if l1_bytes is not None else None
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     queries = {w.queries for w in loads.values()}

@@ -583,6 +583,12 @@ def test_cache_columns_count_the_doublings_of_a_map_beyond_l1():
         st.meta["l1_bytes"] = 1024
     cached = calibrate(sets, resamples=10)
     assert not cached.unused and "per_node_cache" in cached.as_dict()["costs"]
+    sets[1].meta["l1_bytes"] = None
+    with pytest.raises(ValueError, match="some workloads record the L1 cache"):
+        calibrate(sets, resamples=10)
+    # Five maps fit the four costs where no L1 is recorded (the cache costs are not counted).
+    five = {1: sets[0].loads[1], 4: sets[0].loads[4]}
+    assert calibrate(five, resamples=0).rows == 5
 
 
 def _costs_file(tmp_path, grid_sets=None, threads=2):

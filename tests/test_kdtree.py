@@ -214,3 +214,15 @@ def test_maps_built_in_groups_give_the_same_forest(monkeypatch, grouped_ids):
         np.testing.assert_array_equal(getattr(grouped, name), getattr(whole, name))
     np.testing.assert_array_equal(grouped.nodes.numpy(), whole.nodes.numpy())
     np.testing.assert_array_equal(grouped.records.numpy(), whole.records.numpy())
+
+
+@pytest.mark.parametrize("count, leaf", [(1001, 7), (64, 8), (5, 3)])
+def test_a_ball_over_everything_tests_every_photon_once(count, leaf):
+    """A radius that covers the whole set reaches every leaf: each photon is tested and found
+    exactly once, whatever the leaves' sizes (odd ones too: the leaf scan tests photons in
+    pairs and must neither skip the last one nor read past a leaf's end)."""
+    pts = np.random.default_rng(count).random((count, 3)).astype(np.float32)
+    forest = build_forest(pts, leaf_size=leaf)
+    _, found, stats = _query_sums(forest, np.ones(count), np.full((3, 3), 0.5), 10.0)
+    assert np.all(stats.photons_tested.numpy() == count)
+    assert np.all(found == count)

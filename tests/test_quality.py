@@ -76,6 +76,40 @@ def test_eq2_holds_for_every_kernel(kernel):
     np.testing.assert_allclose(parts, whole, rtol=1e-5, atol=1e-6 * whole.max())
 
 
+@pytest.mark.parametrize("kernel", ["box", "simpson"])
+def test_plain_diffuse_shortcut_equals_the_general_estimate(monkeypatch, kernel):
+    """Where every query is plain diffuse the walk skips the per-photon BSDF call; forced
+    through the general path (a BSDF call per photon) the flux and counts are the same."""
+    import mi_partpm.estimate as estimate
+    scene = mi_partpm.load_scene("cornell_box_diffuse", resolution=(16, 16), spp=2)
+    maps = build_photon_maps(trace_photons(scene, 20_000, 2, seed=3))
+    sampler = scene.sensors()[0].sampler()
+    sampler.seed(0, 256)
+    rng = np.random.default_rng(2)
+    uv = mi.Point2f(*[mi.Float(a.astype(np.float32)) for a in rng.random((2, 256))])
+    ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
+    points = eye_paths(scene, sampler, ray, -1, 5, False, False).points
+    seen = []
+    init = estimate._Estimator.__init__
+
+    def record(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        seen.append(self.all_plain)
+    monkeypatch.setattr(estimate._Estimator, "__init__", record)
+    fast = gather_flux(maps, points.si, points.bsdf, 0.12, kernel=kernel)
+    assert seen == [True]
+
+    def general(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        self.all_plain = False
+    monkeypatch.setattr(estimate._Estimator, "__init__", general)
+    slow = gather_flux(maps, points.si, points.bsdf, 0.12, kernel=kernel)
+    flux = np.array(fast.flux)
+    assert flux.max() > 0
+    np.testing.assert_allclose(np.array(slow.flux), flux, rtol=1e-6, atol=1e-7 * flux.max())
+    np.testing.assert_array_equal(np.array(slow.found), np.array(fast.found))
+
+
 def tilted_normal_floor(tilt_degrees: float):
     """A 4 x 4 floor in the y = 0 plane (albedo 0.5) whose shading normals all lean by
     ``tilt_degrees`` towards +x, as a bump or normal map would tilt them."""

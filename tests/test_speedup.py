@@ -33,7 +33,8 @@ def test_speedup_per_map_estimates_gather_to_one_map(tmp_path):
     assert json.loads((tmp_path / "speedup.json").read_text())["code"] == code_version()
     meta, loads = load_workloads(tmp_path / "workloads")
     assert sorted(loads) == [1, 2, 4, 7] and meta["queries"] == result["queries"] > 1000
-    # Format version 2: the radius as a fraction of the scene and the timing threads.
+    # Format version 3: the radius as a fraction of the scene, the timing threads and the
+    # SIMD lanes that ran the queries.
     assert meta["version"] == 3 and meta["radius_fraction"] == 0.05 and meta["threads"] >= 1
     assert meta["lanes"] in (4, 8, 16, 32)
     assert meta["leaf_size"] == 32

@@ -256,7 +256,7 @@ def _bench_tracing(b: _Bench, scene_name, resolution, count, path_spp):
     # Two baselines: path at max_depth 2 (camera, shadow and one bounce ray per sample: the
     # coherent camera rays flatter it) and at max_depth 8 without Russian roulette (mostly
     # incoherent bounces, like a photon's), its samples cut to keep the same work. Each is
-    # timed in rounds with the tracer (the photons are on the host when it returns).
+    # timed in rounds with the tracer (its photons evaluated before the clock stops).
     for depth, spp in ((2, path_spp), (8, max(1, path_spp // 4))):
         path = mi.load_dict({"type": "path", "max_depth": depth, "rr_depth": 100})
         path_scene = load_scene(scene_name, resolution=resolution, spp=spp)

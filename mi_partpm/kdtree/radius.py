@@ -234,7 +234,7 @@ def _walk(forest, p, r, contribution, result_type, active, first, stop, with_sta
                 j = i + u
                 valid = j < end
                 if dr.hint(with_stats, mode="scalar"):
-                    photons_tested += dr.select(valid, 1, 0)
+                    photons_tested += mi.UInt32(valid)
                 dist2 = dr.squared_norm(photon_position(forest, j, valid) - p)
                 found = valid & (dist2 <= r2)
                 if dr.hint(accept is not None, mode="scalar"):
