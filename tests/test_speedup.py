@@ -289,3 +289,18 @@ def test_bench_smoke(tmp_path, capsys):
         assert memory["baseline"] == pytest.approx(memory["drjit_peak_bytes"] /
                                                    memory["stored"])
     assert result["code"] and result["machine"]["cores"] >= 1
+
+
+def test_paired_times_alternate_the_codes_round_by_round():
+    """Every round runs each code once, the first one rotating, after the warm-up rounds;
+    each time lands in its own code's row."""
+    from mi_partpm.timing import paired_times
+    calls = []
+
+    def code(name):
+        return lambda: calls.append(name)
+    t = paired_times([(code("a"), False), (code("b"), False), (code("c"), False)], 4, warmup=1)
+    assert t.shape == (3, 4) and np.all(t >= 0)
+    assert calls[:3] == ["a", "b", "c"]                        # the warm-up round
+    rounds = [calls[3 + 3 * r: 6 + 3 * r] for r in range(4)]
+    assert rounds == [["a", "b", "c"], ["b", "c", "a"], ["c", "a", "b"], ["a", "b", "c"]]
