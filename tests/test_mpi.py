@@ -150,12 +150,13 @@ def test_scaling_command_small(tmp_path, capsys):
     assert rows[1]["max_rel_diff_vs_first"] < 1e-3
     # The render time of P = 2 is predicted from P = 1's CPU seconds per phase and the
     # reduction benchmark alone (mi_partpm.experiments.mpimodel). P = 1 reproduces itself
-    # by construction (up to medians of parts over the repeats: measured under 0.1%, bound
-    # 1%); P = 2 is out of sample. At this tiny size start-up
+    # by construction, up to the medians of its parts over the repeats against the median of
+    # their sums: at this size a run is a tenth of a second and the two medians differ by
+    # the repeats' spread (measured 0.0-1.6%, bound 5%); P = 2 is out of sample. At this tiny size start-up
     # costs weigh more than at the README's (where the command reports the error), so the
     # bound is loose: 50% (measured -20%). A model that forgot the replicated eye pass or
     # the shared cores misses by 2x.
-    assert abs(rows[0]["render_pred_rel_error"]) < 0.01
+    assert abs(rows[0]["render_pred_rel_error"]) < 0.05
     assert rows[1]["render_pred_out_of_sample"] and not rows[0]["render_pred_out_of_sample"]
     assert abs(rows[1]["render_pred_rel_error"]) < 0.5, rows[1]
     for r in rows:
