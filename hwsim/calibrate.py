@@ -28,8 +28,8 @@ plain per-query counts.
 come from further away. Where a workload records the CPU's L1 data cache (``l1_bytes``), two
 more columns count nodes and tests times the doublings of the map's bytes beyond it,
 log2(map bytes / L1) where positive, with costs ``per_node_cache`` and ``per_test_cache``
-(seconds per action per doubling). Without ``l1_bytes`` those columns are 0 and the two
-costs are not part of the model. They are the CPU's memory hierarchy: hwsim's PE model has
+(seconds per action per doubling). Where no workload records ``l1_bytes``, the two costs are
+not part of the model (:func:`cache_modelled`); sets that record it only in part are refused. They are the CPU's memory hierarchy: hwsim's PE model has
 its own (SRAM, DRAM) and runs on the four costs above.
 
 **The design.** Within one speedup run (one leaf size, one radius) nodes, tests and found
@@ -60,7 +60,7 @@ NumPy and SciPy only: hwsim never imports Mitsuba.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import nnls
@@ -123,14 +123,14 @@ class Fit:
     sets: int
     design: dict
     self_check: dict
-    unused: list = None        # cache costs not in the model (the workloads lack l1_bytes)
+    unused: list = field(default_factory=list)   # cache costs not in the model (no L1)
 
     @property
     def all_positive(self) -> bool:
         return not self.zero
 
     def as_dict(self) -> dict:
-        unused = set(self.unused or [])
+        unused = set(self.unused)
 
         def modelled(d):
             return {k: v for k, v in d.items() if k not in unused}
@@ -182,6 +182,23 @@ def cache_doublings(map_bytes, l1_bytes) -> float:
     if not l1_bytes or map_bytes <= l1_bytes:
         return 0.0
     return float(np.log2(float(map_bytes) / float(l1_bytes)))
+
+
+def cache_modelled(sets) -> bool:
+    """Whether the cache costs are in the model of ``sets``: every set records the L1 cache
+    (``l1_bytes``). ValueError where only some do: their cache costs cannot be fitted
+    together."""
+    recorded = [s.meta.get("l1_bytes") is not None for s in sets]
+    if any(recorded) and not all(recorded):
+        raise ValueError("some workloads record the L1 cache (l1_bytes) and some do not: "
+                         "their cache costs cannot be fitted together (measure them again)")
+    return bool(recorded) and all(recorded)
+
+
+def _modelled_columns(sets) -> list:
+    """The indices of :data:`COST_NAMES` in the model of ``sets``."""
+    cache = cache_modelled(sets)
+    return [j for j, name in enumerate(COST_NAMES) if cache or name not in CACHE_COSTS]
 
 
 def features(loads, lanes: int | None = None,
@@ -279,16 +296,11 @@ def calibrate(data, weighting: str = "relative", resamples: int = 400,
     resamples of the rows), the costs fitted to 0, the design's conditioning, and the fit's
     check on its own rows."""
     x, t, _, _, sets = set_features(data)
-    unused = [name for name, col in zip(COST_NAMES, x.T) if name in CACHE_COSTS
-              and not np.any(col)]
-    costs_fitted = len(COST_NAMES) - len(unused)
-    if t.size < costs_fitted + 1:
-        raise ValueError(f"needs >= {costs_fitted + 1} measured maps for its "
-                         f"{costs_fitted} costs, the workloads hold {t.size}")
-    recorded = [s.meta.get("l1_bytes") is not None for s in sets]
-    if any(recorded) and not all(recorded):
-        raise ValueError("some workloads record the L1 cache (l1_bytes) and some do not: "
-                         "their cache costs cannot be fitted together (measure them again)")
+    kept = _modelled_columns(sets)
+    unused = [name for j, name in enumerate(COST_NAMES) if j not in kept]
+    if t.size < len(kept) + 1:
+        raise ValueError(f"needs >= {len(kept) + 1} measured maps for its "
+                         f"{len(kept)} costs, the workloads hold {t.size}")
     a, b = _weighted(x, t, weighting)
     coef = _nnls(a, b)
     boot = (_bootstrap(a, b, resamples, seed) if resamples
@@ -320,9 +332,8 @@ def design(data, weighting: str = "relative") -> dict:
     and, where modelled, the cache columns; 1 / (1 - R^2) of that regression; 1:
     independent, over 10: nearly collinear), and the condition number of the weighted matrix
     with unit-norm columns that NNLS solves."""
-    x, t, *_ = set_features(data)
-    kept = [j for j, name in enumerate(COST_NAMES)
-            if name not in CACHE_COSTS or np.any(x[:, j])]
+    x, t, _, _, sets = set_features(data)
+    kept = _modelled_columns(sets)
     x = x[:, kept]
     counts = x[:, :3]
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -437,7 +448,7 @@ def write_costs(path, fit_: Fit, *, scene: str, threads: int | None, source: str
              f"seconds_per_map = {_toml_value(c.fixed)}",
              "# The CPU's caches (per action per doubling of the map beyond L1): not run by the",
              "# PE model, whose memory is its own SRAM and DRAM."]
-    modelled = [n for n in CACHE_COSTS if n not in (fit_.unused or [])]
+    modelled = [n for n in CACHE_COSTS if n not in fit_.unused]
     lines += [f"{_CACHE_KEYS[n]} = {_toml_value(getattr(c, n))}" for n in modelled]
     lines += ["", "[standard_error]                # seconds; absent for a cost fitted to 0"]
     keys = {**_FILE_KEYS, **{n: _CACHE_KEYS[n] for n in modelled}}
@@ -510,7 +521,7 @@ def format_fit(f: dict, scene: str = "") -> list:
             "per_node_cache": "ns/node per doubling beyond L1",
             "per_test_cache": "ns/test per doubling beyond L1"}
     for name in COST_NAMES:
-        if name in f.get("unused", []) or name not in f["costs"]:
+        if name not in f["costs"]:             # not in the model (as_dict leaves it out)
             continue
         c, se = f["costs"][name], f["standard_errors"].get(name)
         lo, hi = f["intervals"][name]

@@ -88,9 +88,7 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
     for key in ("radius_fraction", "threads", "leaf_size", "lanes", "l1_bytes"):
         meta.setdefault(key, None)
     for key in ("lanes", "l1_bytes"):
-        v = meta[key]
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-            raise ValueError(f"{meta_path}: {key} must be an integer >= 1 or null, got {v!r}")
+        _optional_count(key, meta[key], f"{meta_path}: ")
     loads = {}
     for n_text, name in meta["files"].items():
         n = int(n_text)
@@ -108,6 +106,15 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
     return meta, loads
 
 
+def _optional_count(key: str, v, where: str = ""):
+    """``v`` as an int, or None; ValueError naming ``key`` unless it is an integer >= 1."""
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+        raise ValueError(f"{where}{key} must be an integer >= 1 or null, got {v!r}")
+    return int(v)
+
+
 def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: float = 0.0,
                    photons_emitted: int = 0, photons_stored: int | None = None,
                    leaf_size: int | None = None, radius_fraction: float | None = None,
@@ -119,12 +126,7 @@ def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: 
     ``map_seconds``; ``lanes``: the SIMD lanes of one packet of queries in those runs, the
     per-query arrays being in the order the queries ran; ``l1_bytes``: the L1 data cache of
     the CPU that ran them (None: unknown, or not measured)."""
-    for key, v in (("lanes", lanes), ("l1_bytes", l1_bytes)):
-        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
-                              or v < 1):
-            raise ValueError(f"{key} must be an integer >= 1 or None, got {v!r}")
-    lanes = int(lanes) if lanes is not None else None
-    l1_bytes = int(l1_bytes) if l1_bytes is not None else None
+    lanes, l1_bytes = _optional_count("lanes", lanes), _optional_count("l1_bytes", l1_bytes)
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     queries = {w.queries for w in loads.values()}
@@ -139,7 +141,8 @@ def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: 
     info = {"version": FORMAT_VERSION, "scene": scene, "queries": queries.pop(),
             "radius": radius, "photons_emitted": photons_emitted,
             "photons_stored": photons_stored, "leaf_size": leaf_size,
-            "radius_fraction": radius_fraction, "threads": threads, "lanes": lanes, "l1_bytes": l1_bytes,
+            "radius_fraction": radius_fraction, "threads": threads, "lanes": lanes,
+            "l1_bytes": l1_bytes,
             "bytes_per_photon": int(bytes_per_photon), "bytes_per_node": int(bytes_per_node),
             "maps": sorted(loads), "files": {str(n): f"n{n}.npz" for n in sorted(loads)}}
     for n, w in loads.items():

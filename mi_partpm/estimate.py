@@ -141,15 +141,13 @@ class _Estimator:
         wi_photon = maps.photon_direction(i, found)
         power = maps.photon_power(i, found)
         same_side = dr.dot(wi_photon, lane.n_view) > 0
-        if self.all_plain:
-            value = dr.select(same_side, power, 0.0)
-            return value * self.weight(dist2, lane.radius2) if self.weight is not None \
-                else value
-        wo = lane.si.to_local(wi_photon)
-        cos = dr.abs(mi.Frame3f.cos_theta(wo))
-        general = found & ~lane.plain & (cos > 1e-6)
-        f = lane.bsdf.eval(self.ctx, lane.si, wo, general) / dr.select(general, cos, 1.0)
-        value = dr.select(lane.plain, dr.select(same_side, power, 0.0), f * power)
+        value = dr.select(same_side, power, 0.0)
+        if not self.all_plain:
+            wo = lane.si.to_local(wi_photon)
+            cos = dr.abs(mi.Frame3f.cos_theta(wo))
+            general = found & ~lane.plain & (cos > 1e-6)
+            f = lane.bsdf.eval(self.ctx, lane.si, wo, general) / dr.select(general, cos, 1.0)
+            value = dr.select(lane.plain, value, f * power)
         if self.weight is not None:
             value = value * self.weight(dist2, lane.radius2)
         return value

@@ -57,18 +57,25 @@ def test_every_kernel_is_normalised(kernel):
     assert abs(img.mean() / expected - 1) < 0.01
 
 
+def _maps_and_points(scene_name: str, maps: int, uv_seed: int):
+    """The scene (16 x 16; held by the caller while its points are used: they point at its
+    BSDFs), 20,000 of its photons in ``maps`` maps, and the visible points of 256 eye rays
+    through seeded random film positions."""
+    scene = mi_partpm.load_scene(scene_name, resolution=(16, 16), spp=2)
+    photon_maps = build_photon_maps(trace_photons(scene, 20_000, maps, seed=3))
+    sampler = scene.sensors()[0].sampler()
+    sampler.seed(0, 256)
+    rng = np.random.default_rng(uv_seed)
+    uv = mi.Point2f(*[mi.Float(a.astype(np.float32)) for a in rng.random((2, 256))])
+    ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
+    return scene, photon_maps, eye_paths(scene, sampler, ray, -1, 5, False, False).points
+
+
 @pytest.mark.parametrize("kernel", KERNEL_NAMES[1:])
 def test_eq2_holds_for_every_kernel(kernel):
     """With any kernel the per-map terms add up to the estimate of all maps (eq. 2): the
     weight depends on the photon's distance and the common radius only."""
-    scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=2)
-    maps = build_photon_maps(trace_photons(scene, 20_000, 4, seed=3))
-    sampler = scene.sensors()[0].sampler()
-    sampler.seed(0, 256)
-    rng = np.random.default_rng(1)
-    uv = mi.Point2f(*[mi.Float(a.astype(np.float32)) for a in rng.random((2, 256))])
-    ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
-    points = eye_paths(scene, sampler, ray, -1, 5, False, False).points
+    scene, maps, points = _maps_and_points("cornell_box", 4, uv_seed=1)
     whole = np.array(gather_flux(maps, points.si, points.bsdf, 0.12, kernel=kernel).flux)
     parts = sum(np.array(gather_flux(maps, points.si, points.bsdf, 0.12, map_range=(m, m + 1),
                                      kernel=kernel).flux) for m in range(4))
@@ -81,14 +88,7 @@ def test_plain_diffuse_shortcut_equals_the_general_estimate(monkeypatch, kernel)
     """Where every query is plain diffuse the walk skips the per-photon BSDF call; forced
     through the general path (a BSDF call per photon) the flux and counts are the same."""
     import mi_partpm.estimate as estimate
-    scene = mi_partpm.load_scene("cornell_box_diffuse", resolution=(16, 16), spp=2)
-    maps = build_photon_maps(trace_photons(scene, 20_000, 2, seed=3))
-    sampler = scene.sensors()[0].sampler()
-    sampler.seed(0, 256)
-    rng = np.random.default_rng(2)
-    uv = mi.Point2f(*[mi.Float(a.astype(np.float32)) for a in rng.random((2, 256))])
-    ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
-    points = eye_paths(scene, sampler, ray, -1, 5, False, False).points
+    scene, maps, points = _maps_and_points("cornell_box_diffuse", 2, uv_seed=2)
     seen = []
     init = estimate._Estimator.__init__
 

@@ -126,7 +126,8 @@ def run_calibration(scene_name: str, out_dir, leaf_sizes: Sequence[int] = (8, 32
                 "threads": used_threads, "lanes": lanes, "l1_bytes": l1}, loads))
     settings = {"photons": photons, "resolution": list(resolution), "spp": spp,
                 "repeats": repeats, "threads": used_threads, "seed": seed,
-                "lanes": lanes, "l1_bytes": l1, "maps": list(maps_list), "leaf_sizes": list(leaves),
+                "lanes": lanes, "l1_bytes": l1, "maps": list(maps_list),
+                "leaf_sizes": list(leaves),
                 "radius_fractions": list(fracs), "queries": int(s.queries),
                 "order": "interleaved: every repeat times every (set, n, map) once, in a "
                          "seeded random order"}
