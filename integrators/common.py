@@ -69,6 +69,7 @@ class Layer:
     photon_count: int
     paths: str = "all"
     salt: int = 0
+    caustic_through: str = "delta"
     maps: object = None
     stored: int = 0
 
@@ -159,6 +160,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                                 stream_seed(p.seed ^ layer.salt, render_seed, pass_index),
                                 self._photon_depth(), p.rr_depth, maps=maps,
                                 min_bounce=self.min_bounce(), paths=layer.paths,
+                                caustic_through=layer.caustic_through,
                                 progress=lambda line: log.debug("trace: %s", line),
                                 memory_check=guard)
         # The wave's maps become this process's maps 0 .. len(maps)-1.
@@ -188,6 +190,12 @@ class PhotonMapper(mi.SamplingIntegrator):
         the eye path."""
         d = self.params.max_depth
         return d - 1 if d != UNLIMITED_DEPTH else UNLIMITED_DEPTH
+
+    def caustic_through(self) -> str:
+        """What a caustic path bounces on (:data:`~mi_partpm.trace.CAUSTIC_THROUGH`): glossy
+        lobes too where eye paths trace glossy surfaces on, so that the caustic and the
+        global maps split the paths where the eye paths do."""
+        return "glossy" if self.params.glossy == "trace" else "delta"
 
     def min_bounce(self) -> int:
         """The fewest segments a stored photon has: 2 when direct light is sampled."""

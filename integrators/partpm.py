@@ -118,7 +118,9 @@ class PartPMIntegrator(PhotonMapper):
            apart, and only those that reach their first non-delta surface through one or
            more mirror or glass bounces (L S+ D) are stored, in their own map_count
            partitioned maps, read with their own radius; the global maps then keep every
-           other photon, so nothing is counted twice. (Default: 0)
+           other photon, so nothing is counted twice. With glossy = trace, glossy bounces
+           count like mirror and glass ones, up to the first surface with a diffuse lobe
+           (L {S|G}+ D: the caustic under a rough glass sphere). (Default: 0)
        * - caustic_radius, caustic_radius_fraction
          - |float|
          - The caustic maps' (initial) radius in world units, or as a fraction of the scene's
@@ -139,7 +141,9 @@ class PartPMIntegrator(PhotonMapper):
          - Rays of a final gather at every visible point, >= 0; 0 is off. With n > 0 (needs
            direct = nee) the global maps are read only where those BSDF-sampled rays land,
            caustics come from the caustic maps (or, without them, from the gather rays that
-           reach an emitter through mirrors and glass): Jensen's two-pass method. (Default: 0)
+           reach an emitter through mirrors and glass): Jensen's two-pass method. With glossy
+           = trace the gather rays go on through glossy surfaces too and read the maps at the
+           next surface with a diffuse lobe. (Default: 0)
        * - maps_per_wave
          - |int|
          - Maps traced, built and queried at once, in [0, map_count]: the maps of a pass run
@@ -223,6 +227,8 @@ class PartPMIntegrator(PhotonMapper):
         if caustic:
             layers.append(Layer("caustic", self.caustic_photon_count, "caustic",
                                 salt=CAUSTIC_SALT))
+        for layer in layers:
+            layer.caustic_through = self.caustic_through()
         return layers
 
     def min_bounce(self) -> int:
@@ -274,7 +280,7 @@ class PartPMIntegrator(PhotonMapper):
                             seed=stream_seed(p.seed, 0, pass_index), max_depth=p.max_depth,
                             kernel=p.kernel,
                             caustics=self.caustic_photon_count == 0 and self.wave_index == 0,
-                            lobes=estimated_lobes(p.glossy))
+                            lobes=estimated_lobes(p.glossy), glossy=p.glossy == "trace")
 
     def to_string(self):
         p = self.params

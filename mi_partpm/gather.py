@@ -6,7 +6,11 @@ arriving back (:func:`~mi_partpm.estimate.gather_flux`). Their mean, times the t
 the light the visible point reflects from other surfaces. The global map is thus never read
 at the visible point itself, where its blur would show; direct light there comes from emitter
 sampling and caustics from the caustic map. Without a caustic map, a gather ray that reaches
-an emitter through mirrors or glass brings the caustic light instead (``caustics``).
+an emitter through mirrors or glass brings the caustic light instead (``caustics``). With
+``glossy`` (eye paths that trace glossy surfaces on), the gather rays go on through glossy
+surfaces too, to the first surface with a diffuse lobe, and the caustic maps hold the paths
+that bounce on glossy lobes as well: a glossy surface is then never read from a map, where a
+narrow lobe makes the estimate blur and flicker.
 
 The gather rays draw their random numbers from their own streams (seed, pass, ray), so the
 eye paths' sampler is left as Mitsuba's loop expects it.
@@ -25,11 +29,12 @@ __all__ = ["final_gather"]
 
 def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius: float,
                  seed: int = 0, max_depth: int = -1, kernel: str = "box",
-                 caustics: bool = False, lobes=None):
+                 caustics: bool = False, lobes=None, glossy: bool = False):
     """The final gather's radiance per eye path (``width`` of them) and the photons found,
     summed over ``samples`` rays from each visible point of ``points``, sampled from the
     BSDF's ``lobes`` (default all; the visible points' :func:`~mi_partpm.eyepath.
-    estimated_lobes`)."""
+    estimated_lobes`). ``glossy``: the rays go on through glossy lobes as through delta
+    ones."""
     from .progressive import accumulate
     total = dr.zeros(mi.Spectrum, width)
     found = dr.zeros(mi.Float, width)
@@ -51,7 +56,7 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
         # Segments left: the eye path's, this one, then photons of max_bounce - 1 at most.
         bounce_left = points.max_bounce - 1 if max_depth != UNLIMITED_DEPTH else None
         hit, hit_bsdf, active, beta, seen = _to_non_delta(scene, ray, beta, active, rng,
-                                                          limit, caustics)
+                                                          limit, caustics, glossy)
         if bounce_left is not None:
             active &= points.max_bounce > 1
         est = gather_flux(maps, hit, hit_bsdf, radius, active, max_bounce=bounce_left,
@@ -64,12 +69,16 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
     return total, found
 
 
-def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool, chain: int = 8):
-    """Follow delta lobes from ``ray`` to the first surface with a non-delta lobe (at most
-    ``chain`` delta bounces): (hit, its BSDF, reached, throughput, emission seen after one
-    delta bounce or more when ``caustics``)."""
+def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool,
+                  glossy: bool = False, chain: int = 8):
+    """Follow delta lobes (and with ``glossy`` glossy ones) from ``ray`` to the first surface
+    with a non-delta lobe (with ``glossy``: a diffuse lobe), at most ``chain`` bounces: (hit,
+    its BSDF, reached, throughput, emission seen after one bounce or more when
+    ``caustics``)."""
     seen = dr.zeros(mi.Spectrum, dr.width(beta))
-    ctx_delta = lobe_context(mi.BSDFFlags.Delta)
+    ctx_through = lobe_context(mi.BSDFFlags.Delta | mi.BSDFFlags.Glossy if glossy
+                               else mi.BSDFFlags.Delta)
+    stops = mi.BSDFFlags.Diffuse if glossy else mi.BSDFFlags.Smooth
     hit = dr.zeros(mi.SurfaceInteraction3f, dr.width(beta))
     reached = dr.zeros(mi.Bool, dr.width(beta))
     for step in range(min(chain, max(limit - 1, 1))):
@@ -80,11 +89,15 @@ def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool, cha
             seen += dr.select(lit, beta * emitter.eval(si, lit), 0.0)
         active &= si.is_valid()
         bsdf = si.bsdf(ray)
-        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        hit = dr.select(smooth, si, hit)
-        reached |= smooth
-        active &= ~smooth & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
-        bs, weight = bsdf.sample(ctx_delta, si, rng.next_float32(),
+        stop = active & mi.has_flag(bsdf.flags(), stops)
+        hit = dr.select(stop, si, hit)
+        reached |= stop
+        flags = bsdf.flags()
+        goes_on = mi.has_flag(flags, mi.BSDFFlags.Delta)
+        if glossy:
+            goes_on |= mi.has_flag(flags, mi.BSDFFlags.Glossy)
+        active &= ~stop & goes_on
+        bs, weight = bsdf.sample(ctx_through, si, rng.next_float32(),
                                  mi.Point2f(rng.next_float32(), rng.next_float32()), active)
         beta = dr.select(active, beta * weight, beta)
         active &= dr.any(weight != 0)

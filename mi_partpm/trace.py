@@ -26,10 +26,14 @@ from .props import segment_limit
 from .scenes import check_scene
 
 __all__ = ["map_sizes", "map_seeds", "stream_seed", "trace_photons", "check_emitters", "emit",
-           "Photons", "PATHS"]
+           "Photons", "PATHS", "CAUSTIC_THROUGH"]
 
 #: Which photons a tracing run stores: all of them, only caustic ones (L S+ D), or the rest.
 PATHS = ("all", "caustic", "global")
+#: Which bounces a caustic path makes before the surface it is stored on: "delta" (L S+ D,
+#: S a mirror or glass, D the first non-delta surface) or "glossy" (S a delta or glossy lobe,
+#: D the first surface with a diffuse lobe; for eye paths that trace glossy surfaces on).
+CAUSTIC_THROUGH = ("delta", "glossy")
 
 
 def map_sizes(photon_count: int, map_count: int) -> np.ndarray:
@@ -131,7 +135,7 @@ def check_emitters(scene: mi.Scene, samples: int = 1024):
 
 def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: int = 0,
                   max_depth: int = -1, rr_depth: int = 5, maps: Optional[Sequence[int]] = None,
-                  min_bounce: int = 1, paths: str = "all",
+                  min_bounce: int = 1, paths: str = "all", caustic_through: str = "delta",
                   progress: Optional[Callable[[str], None]] = None,
                   batch_size: int = TRACE_BATCH,
                   memory_check: Optional[Callable[[float, int], None]] = None) -> Photons:
@@ -161,6 +165,10 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         reached their first non-delta surface through one or more delta bounces (L S+ D;
         the path ends there); "global", all the others, so that a global and a caustic map
         together hold every photon once.
+    caustic_through : str
+        What a caustic path bounces on (:data:`CAUSTIC_THROUGH`): "delta" (the above) or
+        "glossy": delta or glossy lobes, up to the first surface with a diffuse lobe (L
+        {S|G}+ D), the caustics of eye paths that trace their glossy surfaces on.
     progress : callable(str), optional
         Receives a line per batch.
     batch_size : int
@@ -177,6 +185,9 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     check_emitters(scene)
     if paths not in PATHS:
         raise ValueError(f"paths must be one of {', '.join(PATHS)}, got {paths!r}")
+    if caustic_through not in CAUSTIC_THROUGH:
+        raise ValueError(f"caustic_through must be one of {', '.join(CAUSTIC_THROUGH)}, got "
+                         f"{caustic_through!r}")
     sizes = map_sizes(photon_count, map_count)
     maps = np.arange(map_count) if maps is None else np.asarray(list(maps), dtype=np.int64)
     max_depth = segment_limit(max_depth)
@@ -184,7 +195,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     if n_lanes == 0 or max_depth < 1:
         return empty_photons(photon_count, map_count)
     run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
-               min_bounce, PATHS.index(paths))
+               min_bounce, PATHS.index(paths), caustic_through == "glossy")
     # Lane l of the traced maps -> (map, index within the map).
     ends = np.cumsum(sizes[maps])
     batches, segments, done = [], 0, 0
@@ -214,11 +225,12 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
 class _Run:
     """What every batch of one tracing run shares."""
 
-    def __init__(self, scene, photon_count, seeds, max_depth, rr_depth, min_bounce, paths):
+    def __init__(self, scene, photon_count, seeds, max_depth, rr_depth, min_bounce, paths,
+                 through_glossy=False):
         self.scene, self.photon_count = scene, photon_count
         self.seeds = mi.UInt64(seeds)
         self.max_depth, self.rr_depth, self.min_bounce = max_depth, rr_depth, min_bounce
-        self.paths = paths
+        self.paths, self.through_glossy = paths, through_glossy
         self.table = _emitter_table(scene)
 
     def batch(self, lane_map: np.ndarray, lane_index: np.ndarray, per_lane: float):
@@ -265,7 +277,8 @@ class _Run:
         # saves about 0.2 s a call; the kernel is the same.
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
             segments = _trace_paths(self.scene, rng, ray, power, out, counter, capacity,
-                                    self.max_depth, self.rr_depth, self.min_bounce, self.paths)
+                                    self.max_depth, self.rr_depth, self.min_bounce, self.paths,
+                                    self.through_glossy)
         total = dr.sum(segments)
         dr.eval(out, counter, total)
         return list(out), counter, total
@@ -283,9 +296,10 @@ def shading_correction(si, wi):
 
 @dr.syntax
 def _trace_paths(scene, rng, ray, power, out, counter, capacity, max_depth, rr_depth,
-                 min_bounce, paths):
+                 min_bounce, paths, through_glossy=False):
     """The bounce loop of one batch (one kernel): store, scatter, roulette. Returns the
-    segments each lane traced. ``paths`` is the index in :data:`PATHS`."""
+    segments each lane traced. ``paths`` is the index in :data:`PATHS`; ``through_glossy``:
+    caustic paths go on through glossy lobes too (:data:`CAUSTIC_THROUGH`)."""
     positions, codes, fluxes, bounces, lanes = out
     width = dr.width(power)
     lane = dr.arange(mi.UInt32, width)
@@ -297,18 +311,22 @@ def _trace_paths(scene, rng, ray, power, out, counter, capacity, max_depth, rr_d
     rr_from = dr.opaque(mi.UInt32, rr_depth)
     store_from = dr.opaque(mi.UInt32, min_bounce)
     room = dr.opaque(mi.UInt32, capacity)
-    delta_only = dr.full(mi.Bool, True, width)   # every bounce so far was delta
+    delta_only = dr.full(mi.Bool, True, width)   # every bounce so far was delta (or glossy)
     while dr.hint(active, label="partpm_trace"):
         si = scene.ray_intersect(ray, active)
         segments += 1
         active &= si.is_valid()
         bsdf = si.bsdf()
-        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        caustic = delta_only & (bounce >= 2)            # L S+ D: its first non-delta surface
+        flags = bsdf.flags()
+        smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth)
+        # Where a caustic path ends: its first non-delta surface, or with glossy bounces its
+        # first surface with a diffuse lobe.
+        lands = active & mi.has_flag(flags, mi.BSDFFlags.Diffuse) if through_glossy else smooth
+        caustic = delta_only & (bounce >= 2) & lands    # L S+ D
         store = smooth & (bounce >= store_from)
         if dr.hint(paths == 1, mode="scalar"):
             store &= caustic
-            active &= ~smooth                           # no caustic photon after this one
+            active &= ~lands                            # no caustic photon after this one
         elif dr.hint(paths == 2, mode="scalar"):
             store &= ~caustic
         slot = dr.scatter_inc(counter, mi.UInt32(0), store)
@@ -326,7 +344,13 @@ def _trace_paths(scene, rng, ray, power, out, counter, capacity, max_depth, rr_d
                                                  rng.next_float32(active)), active)
         ray = si.spawn_ray(si.to_world(bs.wo))
         power *= bsdf_weight
-        delta_only &= mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        # The lobes a caustic path may bounce on before the surface it is stored on; the path
+        # is no caustic one after that surface, whichever of its lobes it left by (a plastic's
+        # coat), since its caustic photon was stored there.
+        through = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        if dr.hint(through_glossy, mode="scalar"):
+            through |= mi.has_flag(bs.sampled_type, mi.BSDFFlags.Glossy)
+        delta_only &= through & ~lands
         active &= dr.any(power != 0) & dr.all(dr.isfinite(power))
         if bounce >= rr_from:
             q = dr.minimum(dr.max(bsdf_weight), 0.95)

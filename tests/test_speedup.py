@@ -196,6 +196,48 @@ def test_calibrate_writes_sets_with_their_leaf_size_and_radius(tmp_path, capsys)
         format_readme_table(saved)
 
 
+def test_calibrate_two_scenes_in_one_run(tmp_path, capsys):
+    """`partpm calibrate A B`: both scenes' maps timed in one interleaved run, each scene's
+    files in its own folder, each fit predicting the other (both directions in the top
+    calibration.json, which the README's table reads); --refit fits both again without
+    measuring; one --photons count per scene."""
+    from mi_partpm.experiments.calibrate import format_readme_table
+    from hwsim.workload import load_workload_sets
+    out = tmp_path / "both"
+    args = [a if a != "4000" else "4000,3000" for a in CALIBRATE_TINY]
+    assert main(["calibrate", "cornell_box_diffuse", "cornell_box", *args, "--out",
+                 str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "fitted on cornell_box_diffuse, predicts cornell_box" in text
+    assert "fitted on cornell_box, predicts cornell_box_diffuse" in text
+    top = json.loads((out / "calibration.json").read_text())
+    assert top["scenes"] == ["cornell_box_diffuse", "cornell_box"]
+    assert [d["fit_on"] for d in top["check"]["directions"]] == top["scenes"]
+    for scene, photons in (("cornell_box_diffuse", 4000), ("cornell_box", 3000)):
+        index, sets = load_workload_sets(out / scene / "sets")
+        assert index["scene"] == scene and index["settings"]["photons"] == photons
+        assert "over the maps of 2 scenes" in index["settings"]["order"]
+        assert all((w.map_seconds > 0).all() for st in sets for w in st.loads.values())
+        assert (out / scene / "fitted_costs.toml").is_file()
+    assert len(format_readme_table(top).splitlines()) == 4
+    before = (out / "cornell_box" / "sets" / "leaf4_r0.05" / "n1.npz").read_bytes()
+    assert main(["calibrate", "--refit", "--out", str(out), "-q"]) == 0
+    again = json.loads((out / "calibration.json").read_text())
+    assert again["check"]["directions"][0]["prediction"]["r2"] == pytest.approx(
+        top["check"]["directions"][0]["prediction"]["r2"])
+    assert (out / "cornell_box" / "sets" / "leaf4_r0.05" / "n1.npz").read_bytes() == before
+    assert main(["calibrate", "cornell_box", "cornell_box_diffuse", "--photons", "1,2,3",
+                 "--out", str(tmp_path / "x")]) == 2
+    assert "--photons must give one count or one per scene (2), got 3" in \
+        capsys.readouterr().err
+    assert main(["calibrate", "cornell_box", "cornell_box", "--out", str(tmp_path / "x")]) \
+        == 2
+    assert "calibrate's scenes must be distinct" in capsys.readouterr().err
+    assert main(["calibrate", "cornell_box", "cornell_box_diffuse", "--check", str(out),
+                 "--out", str(tmp_path / "x")]) == 2
+    assert "each already predicts the others" in capsys.readouterr().err
+
+
 def test_calibrate_cli_errors(tmp_path, capsys):
     assert main(["calibrate", "cornell_box", "--leaf-sizes", "8,0", "--out", str(tmp_path)]) \
         == 2

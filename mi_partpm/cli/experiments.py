@@ -98,16 +98,18 @@ def run_calibrate(args) -> int:
             raise UsageError(f"--radius-fractions must be comma-separated numbers in (0, 1], "
                              f"got {args.radius_fractions!r}") from None
         try:
-            result = cal.run_calibration(
+            result = cal.run_calibrations(
                 args.scene, args.out, int_list("--leaf-sizes", args.leaf_sizes), fracs,
-                int_list("--maps", args.maps), args.photons, args.resolution, args.spp,
-                args.repeats, args.threads, args.seed, args.data, args.check,
-                progress=progress(args))
+                int_list("--maps", args.maps), int_list("--photons", args.photons),
+                args.resolution, args.spp, args.repeats, args.threads, args.seed, args.data,
+                args.check, progress=progress(args))
         except (FileNotFoundError, ValueError) as e:
             raise UsageError(str(e)) from None
     if not args.quiet:
         print(cal.format_calibration(result))
-        print(f"wrote    {args.out}/calibration.json, fitted_costs.toml, hwsim_fitted.toml"
+        where = (f"{args.out}/{{{','.join(result['dirs'].values())}}}" if "dirs" in result
+                 else args.out)
+        print(f"wrote    {where}/calibration.json, fitted_costs.toml, hwsim_fitted.toml"
               + ("" if args.refit else " and sets/"))
     return 0
 

@@ -192,8 +192,11 @@ def _experiment_options(sub):
     k = sub.add_parser("calibrate", help="per-map times and counts at several leaf sizes and "
                                          "radii; hwsim's costs fitted to them (the file "
                                          "[pe] costs = \"fitted\" runs on)")
-    k.add_argument("scene", nargs="?", help="built-in scene name or Mitsuba XML file (not "
-                                            "with --refit)")
+    k.add_argument("scene", nargs="*", help="built-in scene names or Mitsuba XML files (not "
+                                            "with --refit); with two or more, their maps are "
+                                            "timed interleaved in one run, each scene's files "
+                                            "go into --out/SCENE/ and each fit predicts the "
+                                            "other scenes")
     k.add_argument("--leaf-sizes", default="8,32,128",
                    help="comma-separated kd-tree leaf sizes (default 8,32,128)")
     k.add_argument("--radius-fractions", default="0.025,0.05,0.1",
@@ -201,8 +204,9 @@ def _experiment_options(sub):
                         "0.025,0.05,0.1)")
     k.add_argument("--maps", default="1,2,4,8,16,32",
                    help="comma-separated map counts n (default 1,2,4,8,16,32)")
-    k.add_argument("--photons", type=positive_int("--photons"), default=100_000,
-                   help="photons emitted N (default 100000)")
+    k.add_argument("--photons", default="100000",
+                   help="photons emitted N: one count, or comma-separated, one per scene "
+                        "(default 100000)")
     k.add_argument("--resolution", type=parse_resolution, default=(240, 240),
                    help="film size WxH (default 240x240)")
     k.add_argument("--spp", type=positive_int("--spp"), default=1,
@@ -214,8 +218,9 @@ def _experiment_options(sub):
                    help="Dr.Jit threads of the timed kernels (default 1: one thread's costs)")
     k.add_argument("--seed", type=int, default=0, help="photon seed (default 0)")
     k.add_argument("--check", metavar="DIR",
-                   help="another scene's calibration (its --out): fit on each scene, predict "
-                        "the other's per-map times")
+                   help="another scene's calibration measured earlier (its --out): fit on "
+                        "each scene, predict the other's per-map times (timing both scenes in "
+                        "one run, 'calibrate A B', keeps the machine's drift out)")
     k.add_argument("--refit", action="store_true",
                    help="fit the sets already in --out again (and --check), measure nothing")
     k.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")

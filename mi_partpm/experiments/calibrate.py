@@ -45,7 +45,7 @@ from .provenance import code_version, l1_data_bytes, simd_lanes
 # The measuring functions import Mitsuba and Dr.Jit (and need a variant) when they run:
 # refitting and formatting need neither.
 
-__all__ = ["run_calibration", "refit", "format_calibration", "format_readme_table",
+__all__ = ["run_calibration", "run_calibrations", "scene_dir_name", "refit", "format_calibration", "format_readme_table",
            "check_grid", "DEFAULTS"]
 
 #: The default grid and size: 3 leaf sizes x 3 radii, n = 1..32, 240 x 240 hit points.
@@ -83,58 +83,143 @@ def run_calibration(scene_name: str, out_dir, leaf_sizes: Sequence[int] = (8, 32
                     threads: Optional[int] = 1, seed: int = 0,
                     data_dir: Optional[str] = None, check_dir=None,
                     progress=print) -> dict:
-    """Measure the sets, fit the costs, write the files (see the module's text).
+    """Measure one scene's sets, fit the costs, write the files into ``out_dir`` (see the
+    module's text).
 
     ``threads``: Dr.Jit threads for the timed kernels (None: Dr.Jit's default).
-    ``check_dir``: another scene's calibration (its ``out_dir`` or ``sets/``): the fit is
-    checked on it and its own fit on this one."""
+    ``check_dir``: another scene's calibration (its ``out_dir`` or ``sets/``), measured
+    earlier: the fit is checked on it and its own fit on this one."""
+    return run_calibrations([scene_name], out_dir, leaf_sizes, radius_fractions, maps_list,
+                            [photons], resolution, spp, repeats, threads, seed, data_dir,
+                            check_dir, progress)
+
+
+def scene_dir_name(scene_name: str) -> str:
+    """The folder of a scene in a several-scene run: a built-in name, or an XML file's
+    stem."""
+    return Path(scene_name).stem if scene_name.endswith(".xml") else scene_name
+
+
+def run_calibrations(scene_names: Sequence[str], out_dir,
+                     leaf_sizes: Sequence[int] = (8, 32, 128),
+                     radius_fractions: Sequence[float] = (0.025, 0.05, 0.1),
+                     maps_list: Sequence[int] = (1, 2, 4, 8, 16, 32),
+                     photons: Sequence[int] = (100_000,), resolution=(240, 240), spp: int = 1,
+                     repeats: int = 3, threads: Optional[int] = 1, seed: int = 0,
+                     data_dir: Optional[str] = None, check_dir=None,
+                     progress=print) -> dict:
+    """Measure the sets of one or more scenes in one run, fit each, write the files.
+
+    With one scene the files go into ``out_dir``. With several, each scene's go into
+    ``out_dir/SCENE/``, every scene's timed runs are interleaved with the others' (one
+    random order per repeat over all scenes' maps), each fit predicts every other scene, and
+    ``out_dir/calibration.json`` holds the cross-scene check of the first two. Timed in one
+    run, both scenes meet the same state of the machine: timed an hour apart, the same
+    scene's costs moved by about 10% here (a shared 2-core machine), as much as the
+    difference the check is meant to find. ``photons``: one count for all scenes or one
+    per scene."""
     import drjit as dr
 
-    from .speedup import _check, _setup, build_maps, map_workloads
+    from .speedup import _check, _setup, build_maps
     from ..photonmap import fixed_radius
+    names = list(scene_names)
+    if not names:
+        raise ValueError("calibrate needs at least one SCENE")
+    if len(set(map(scene_dir_name, names))) != len(names):
+        raise ValueError(f"calibrate's scenes must be distinct, got {names}")
+    counts_ = [int(v) for v in photons]
+    if len(counts_) == 1:
+        counts_ *= len(names)
+    if len(counts_) != len(names):
+        raise ValueError(f"--photons must give one count or one per scene ({len(names)}), "
+                         f"got {len(counts_)}")
+    if len(names) > 1 and check_dir is not None:
+        raise ValueError("--check compares one scene with an earlier run: with several "
+                         "scenes, each already predicts the others")
     leaves, fracs = check_grid(leaf_sizes, radius_fractions)
-    maps_list, lcm = _check(maps_list, photons, repeats)
+    lcms = [_check(maps_list, n, repeats)[1] for n in counts_]
+    maps_list = sorted(set(int(n) for n in maps_list))
     if threads is not None and (not isinstance(threads, int) or threads < 1):
         raise ValueError(f"--threads must be an integer >= 1, got {threads!r}")
     other = load_workload_sets(_sets_dir(check_dir)) if check_dir is not None else None
     say = progress or (lambda *a: None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    s = _setup(scene_name, photons, lcm, resolution, spp, fracs[0], seed, data_dir, say)
-    radii = {f: fixed_radius(s.scene, None, f) for f in fracs}
-    say(f"building {len(leaves)} x {len(maps_list)} forests (leaf sizes "
-        f"{', '.join(map(str, leaves))}; n = {', '.join(map(str, maps_list))}) ...")
-    forests = {(leaf, n): build_maps(s, n, leaf) for leaf in leaves for n in maps_list}
+    runs = []
+    for name, n_photons, lcm in zip(names, counts_, lcms):
+        s = _setup(name, n_photons, lcm, resolution, spp, fracs[0], seed, data_dir, say)
+        radii = {f: fixed_radius(s.scene, None, f) for f in fracs}
+        say(f"building {len(leaves)} x {len(maps_list)} forests of {name} (leaf sizes "
+            f"{', '.join(map(str, leaves))}; n = {', '.join(map(str, maps_list))}) ...")
+        forests = {(leaf, n): build_maps(s, n, leaf) for leaf in leaves for n in maps_list}
+        runs.append(_Run(name, n_photons, s, radii, forests))
     previous = dr.thread_count()
     if threads is not None:
         dr.set_thread_count(threads)
     try:
-        counts = _count(s, forests, radii, maps_list, say)
-        times = _time(s, forests, radii, maps_list, repeats, seed, say)
+        for run in runs:
+            run.counts = _count(run.setup, run.forests, run.radii, maps_list, say)
+        _time(runs, repeats, seed, say)
     finally:
         dr.set_thread_count(previous)
     used_threads = threads if threads is not None else previous
+    order = ("interleaved: every repeat times every (set, n, map) once, in a seeded random "
+             "order" + (f", over the maps of {len(runs)} scenes" if len(runs) > 1 else ""))
+    for run in runs:
+        run.sets, run.settings = _sets_of(run, leaves, fracs, maps_list, resolution, spp,
+                                          repeats, used_threads, seed, order)
+    results = []
+    for i, run in enumerate(runs):
+        where = out if len(runs) == 1 else out / scene_dir_name(run.name)
+        where.mkdir(parents=True, exist_ok=True)
+        save_workload_sets(where / "sets", run.sets, scene=run.name, settings=run.settings)
+        result = {"scene": run.name, "code": code_version(), "settings": run.settings,
+                  "photons_stored": len(run.setup.traced), "sets": _summaries(run.sets)}
+        peer = other
+        if len(runs) > 1:
+            j = (i + 1) % len(runs)
+            peer = ({"scene": runs[j].name}, runs[j].sets)
+        results.append(_fit_and_write(where, result, run.sets, peer, say))
+    if len(runs) == 1:
+        return results[0]
+    combined = {"scenes": names, "code": code_version(),
+                "dirs": {r["scene"]: scene_dir_name(r["scene"]) for r in results},
+                "runs": results, "check": results[0]["check"], "settings": runs[0].settings}
+    (out / "calibration.json").write_text(json.dumps(combined, indent=2) + "\n")
+    return combined
+
+
+class _Run:
+    """One scene of a calibration run: its setup, radii, forests and, once measured, its
+    counts and times."""
+
+    def __init__(self, name, photons, setup, radii, forests):
+        self.name, self.photons, self.setup = name, photons, setup
+        self.radii, self.forests = radii, forests
+        self.counts, self.times, self.sets, self.settings = None, None, None, None
+
+
+def _sets_of(run: _Run, leaves, fracs, maps_list, resolution, spp, repeats, threads, seed,
+             order):
+    """The scene's workload sets and the settings recorded with them."""
+    from .speedup import map_workloads
     lanes, l1 = simd_lanes(), l1_data_bytes()
+    s = run.setup
     sets = []
     for leaf in leaves:
         for f in fracs:
-            loads = {n: map_workloads(n, forests[leaf, n], times[leaf, f, n],
-                                      counts[leaf, f, n]) for n in maps_list}
+            loads = {n: map_workloads(n, run.forests[leaf, n], run.times[leaf, f, n],
+                                      run.counts[leaf, f, n]) for n in maps_list}
             sets.append(WorkloadSet(set_name(leaf, f), {
-                "leaf_size": leaf, "radius": radii[f], "radius_fraction": f,
-                "photons_emitted": photons, "photons_stored": len(s.traced),
-                "threads": used_threads, "lanes": lanes, "l1_bytes": l1}, loads))
-    settings = {"photons": photons, "resolution": list(resolution), "spp": spp,
-                "repeats": repeats, "threads": used_threads, "seed": seed,
+                "leaf_size": leaf, "radius": run.radii[f], "radius_fraction": f,
+                "photons_emitted": run.photons, "photons_stored": len(s.traced),
+                "threads": threads, "lanes": lanes, "l1_bytes": l1}, loads))
+    settings = {"photons": run.photons, "resolution": list(resolution), "spp": spp,
+                "repeats": repeats, "threads": threads, "seed": seed,
                 "lanes": lanes, "l1_bytes": l1, "maps": list(maps_list),
-                "leaf_sizes": list(leaves),
-                "radius_fractions": list(fracs), "queries": int(s.queries),
-                "order": "interleaved: every repeat times every (set, n, map) once, in a "
-                         "seeded random order"}
-    save_workload_sets(out / "sets", sets, scene=scene_name, settings=settings)
-    result = {"scene": scene_name, "code": code_version(), "settings": settings,
-              "photons_stored": len(s.traced), "sets": _summaries(sets)}
-    return _fit_and_write(out, result, sets, other, say)
+                "leaf_sizes": list(leaves), "radius_fractions": list(fracs),
+                "queries": int(s.queries), "order": order}
+    return sets, settings
 
 
 def _count(s, forests, radii, maps_list, say) -> dict:
@@ -159,26 +244,30 @@ def _count(s, forests, radii, maps_list, say) -> dict:
     return out
 
 
-def _time(s, forests, radii, maps_list, repeats, seed, say) -> dict:
-    """(repeats,) seconds per map of every (leaf, radius fraction, n): every repeat times
-    every (set, n, map) once, in a seeded random order."""
+def _time(runs, repeats, seed, say):
+    """Set each run's ``times``: (repeats,) seconds per map of every (leaf, radius fraction,
+    n). Every repeat times every (scene, set, n, map) once, in a seeded random order."""
     from .speedup import time_map
-    jobs = [(leaf, f, n, m) for (leaf, n) in forests for f in radii for m in range(n)]
-    for (leaf, n), maps in forests.items():          # warm-up: compile each radius' kernel
-        for r in radii.values():
-            time_map(s, maps, 0, r)
-    times = {(leaf, f, n): np.zeros((n, repeats)) for (leaf, n) in forests for f in radii}
+    jobs = [(k, leaf, f, n, m) for k, run in enumerate(runs) for (leaf, n) in run.forests
+            for f in run.radii for m in range(n)]
+    for run in runs:                                  # warm-up: compile each radius' kernel
+        for (leaf, n), maps in run.forests.items():
+            for r in run.radii.values():
+                time_map(run.setup, maps, 0, r)
+        run.times = {(leaf, f, n): np.zeros((n, repeats)) for (leaf, n) in run.forests
+                     for f in run.radii}
     rng = np.random.default_rng(seed)
     start = time.perf_counter()
     for rep in range(repeats):
         for i in rng.permutation(len(jobs)):
-            leaf, f, n, m = jobs[i]
-            times[leaf, f, n][m, rep] = time_map(s, forests[leaf, n], m, radii[f])
+            k, leaf, f, n, m = jobs[i]
+            run = runs[k]
+            run.times[leaf, f, n][m, rep] = time_map(run.setup, run.forests[leaf, n], m,
+                                                     run.radii[f])
         spent = time.perf_counter() - start
         say(f"repeat {rep + 1}/{repeats}: {len(jobs)} map runs timed, {spent:.0f} s so far"
             + (f", about {spent / (rep + 1) * (repeats - rep - 1):.0f} s to go"
                if rep + 1 < repeats else ""))
-    return times
 
 
 def _summaries(sets) -> list:
@@ -219,11 +308,22 @@ def _fit_and_write(out: Path, result: dict, sets, other, say) -> dict:
 
 def refit(out_dir, check_dir=None, progress=print) -> dict:
     """Fit again the sets an earlier :func:`run_calibration` wrote into ``out_dir`` (no
-    measuring), checking on ``check_dir``; rewrite its fit, costs file and check."""
+    measuring), checking on ``check_dir``; rewrite its fit, costs file and check. A
+    several-scene run's ``out_dir`` is refitted scene by scene, each checked on the next."""
     out = Path(out_dir)
-    index, sets = load_workload_sets(_sets_dir(out))
     saved = out / "calibration.json"
     result = json.loads(saved.read_text()) if saved.is_file() else {}
+    if "dirs" in result and not (out / "sets" / SETS_FILE).is_file():
+        if check_dir is not None:
+            raise ValueError("--check compares one scene with an earlier run: this run's "
+                             "scenes already predict each other")
+        dirs = [out / d for d in result["dirs"].values()]
+        results = [refit(d, dirs[(i + 1) % len(dirs)], progress)
+                   for i, d in enumerate(dirs)]
+        result.update(code=code_version(), runs=results, check=results[0]["check"])
+        saved.write_text(json.dumps(result, indent=2) + "\n")
+        return result
+    index, sets = load_workload_sets(_sets_dir(out))
     result.update(scene=index.get("scene", ""), settings=index.get("settings", {}),
                   sets=_summaries(sets))
     other = load_workload_sets(_sets_dir(check_dir)) if check_dir is not None else None
@@ -232,7 +332,10 @@ def refit(out_dir, check_dir=None, progress=print) -> dict:
 
 def format_calibration(result) -> str:
     """The run as text: per set the median map time per n, the fit and, if checked, the
-    cross-scene check."""
+    cross-scene check (once for a several-scene run)."""
+    if "runs" in result:
+        parts = [format_calibration({**r, "check": None}) for r in result["runs"]]
+        return "\n".join(parts + ([format_cross(result["check"])] if result["check"] else []))
     st = result["settings"]
     lines = [f"{result['scene']}: {st.get('queries', '?')} hit points, n = "
              f"{', '.join(map(str, st.get('maps', [])))}, {st.get('repeats', '?')} repeats "
@@ -255,7 +358,7 @@ def format_readme_table(result) -> str:
     cross = result.get("check")
     if not cross:
         raise ValueError("this calibration has no cross-scene check: run 'partpm calibrate "
-                         "SCENE --check OTHER_DIR'")
+                         "SCENE OTHER_SCENE' (or 'SCENE --check OTHER_DIR')")
     head = ("| fitted on | ns / node | ns / test | ns / found | ms / map run | ns / node, per "
             "doubling beyond L1 | ns / test, per doubling | R^2 on itself | largest error | "
             "predicts | R^2 | largest error | median error | goal met |")

@@ -397,7 +397,7 @@ class Block:
         return self.cited or self.steps
 
 
-def format_calibrate(results: dict, step: str = "calibrate_happy_buddha") -> str:
+def format_calibrate(results: dict, step: str = "calibrate") -> str:
     """``partpm calibrate``'s costs and cross-scene check (its own table)."""
     from .calibrate import format_readme_table
     return format_readme_table(results[step])
@@ -435,8 +435,7 @@ BLOCKS = {b.name: b for b in (
           format_hwsim_wide),
     Block("hwsim_networks", ("hwsim_wide_cornell_box", "hwsim_wide_happy_buddha"),
           format_hwsim_networks),
-    Block("calibration", ("calibrate_cornell_box", "calibrate_happy_buddha"),
-          format_calibrate),
+    Block("calibration", ("calibrate",), format_calibrate),
     Block("mpi_prediction", ("scaling_cornell_box",), format_mpi_prediction),
     Block("scaling", ("scaling_cornell_box",), format_scaling),
     Block("large", ("large_1e7", "large_1e8"), format_large),

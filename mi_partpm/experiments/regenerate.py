@@ -109,11 +109,10 @@ SIZES = {
         "converge_long": ("--time", "150", "--methods", "partpm"),
         "large": {"1e7": ("--photons", "10000000", "--maps", "8"),
                   "1e8": ("--photons", "100000000", "--maps", "64")},
-        "calibrate": ("--repeats", "7"),
         # Most of the Buddha's photons leave its open scene: 6x the Cornell box's 10^5
         # store about as many (3 x 10^5), so both fits span the same map sizes, on which
         # the costs depend through the caches.
-        "calibrate_happy_buddha": ("--photons", "600000"),
+        "calibrate": ("--repeats", "7", "--photons", "100000,600000"),
     },
     "smoke": {
         "demo": ("--maps", "2", "--photons", "2000", "--resolution", "32x32", "--spp", "1"),
@@ -134,7 +133,6 @@ SIZES = {
                   "1e8": ("--photons", "40000", "--maps", "4")},
         "calibrate": ("--leaf-sizes", "4,16", "--radius-fractions", "0.05,0.1", "--maps",
                       "1,2", "--photons", "4000", "--resolution", "16x16", "--repeats", "2"),
-        "calibrate_happy_buddha": (),
     },
 }
 
@@ -186,16 +184,10 @@ def steps(smoke: bool = False) -> list:
                                             "{out}/scaling_cornell_box"), "scaling.json"))
     out.append(Step("bench", ("bench", *z["bench"], "--out", "{out}/bench/bench.json"),
                     "bench.json"))
-    # Costs fitted to workloads of several leaf sizes and radii, each scene predicting the
-    # other (the Buddha's run checks against the Cornell box's).
-    out.append(Step("calibrate_cornell_box", ("calibrate", "cornell_box", *z["calibrate"],
-                                              "--out", "{out}/calibrate_cornell_box"),
-                    "calibration.json"))
-    out.append(Step("calibrate_happy_buddha", ("calibrate", "happy_buddha", *z["calibrate"],
-                                               *z["calibrate_happy_buddha"],
-                                               "--out", "{out}/calibrate_happy_buddha",
-                                               "--check", "{out}/calibrate_cornell_box"),
-                    "calibration.json", needs=("calibrate_cornell_box",)))
+    # Costs fitted to workloads of several leaf sizes and radii, both scenes timed in one
+    # run, each predicting the other.
+    out.append(Step("calibrate", ("calibrate", *PAPER_SCENES, *z["calibrate"],
+                                  "--out", "{out}/calibrate"), "calibration.json"))
     for size, args in z["large"].items():
         # Large photon counts in waves of maps: time and peak memory per stored photon.
         out.append(Step(f"large_{size}", ("render", "cornell_box", *args, "--spp", "1",
