@@ -142,8 +142,11 @@ class PartPMIntegrator(PhotonMapper):
            direct = nee) the global maps are read only where those BSDF-sampled rays land,
            caustics come from the caustic maps (or, without them, from the gather rays that
            reach an emitter through mirrors and glass): Jensen's two-pass method. With glossy
-           = trace the gather rays go on through glossy surfaces too and read the maps at the
-           next surface with a diffuse lobe. (Default: 0)
+           = trace and a caustic map, the gather rays go on through glossy surfaces too and
+           read the maps at the next surface with a diffuse lobe, the glossy caustics coming
+           from the caustic map; without one they read the maps on the glossy surface, which
+           keeps the glossy caustics of point and spot lights that no ray can hit.
+           (Default: 0)
        * - maps_per_wave
          - |int|
          - Maps traced, built and queried at once, in [0, map_count]: the maps of a pass run
@@ -279,8 +282,10 @@ class PartPMIntegrator(PhotonMapper):
         return final_gather(scene, maps, points, width, self.final_gather, radius,
                             seed=stream_seed(p.seed, 0, pass_index), max_depth=p.max_depth,
                             kernel=p.kernel,
-                            caustics=self.caustic_photon_count == 0 and self.wave_index == 0,
-                            lobes=estimated_lobes(p.glossy), glossy=p.glossy == "trace")
+                            caustics=self.caustic_photon_count == 0 and self.wave_index == 0
+                            and self.backend.is_root,
+                            lobes=estimated_lobes(p.glossy),
+                            glossy=p.glossy == "trace" and self.caustic_photon_count > 0)
 
     def to_string(self):
         p = self.params

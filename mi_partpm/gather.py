@@ -7,10 +7,11 @@ the light the visible point reflects from other surfaces. The global map is thus
 at the visible point itself, where its blur would show; direct light there comes from emitter
 sampling and caustics from the caustic map. Without a caustic map, a gather ray that reaches
 an emitter through mirrors or glass brings the caustic light instead (``caustics``). With
-``glossy`` (eye paths that trace glossy surfaces on), the gather rays go on through glossy
-surfaces too, to the first surface with a diffuse lobe, and the caustic maps hold the paths
-that bounce on glossy lobes as well: a glossy surface is then never read from a map, where a
-narrow lobe makes the estimate blur and flicker.
+``glossy`` (eye paths that trace glossy surfaces on, and caustic maps that hold the paths
+bouncing on glossy lobes as well), the gather rays go on through glossy-only surfaces too, to
+the first surface with a diffuse lobe: a rough conductor or dielectric is then not read from
+a map, where a narrow lobe makes the estimate blur and flicker (a rough plastic, which has a
+diffuse lobe, is read with all its lobes).
 
 The gather rays draw their random numbers from their own streams (seed, pass, ray), so the
 eye paths' sampler is left as Mitsuba's loop expects it.

@@ -322,7 +322,7 @@ def _trace_paths(scene, rng, ray, power, out, counter, capacity, max_depth, rr_d
         # Where a caustic path ends: its first non-delta surface, or with glossy bounces its
         # first surface with a diffuse lobe.
         lands = active & mi.has_flag(flags, mi.BSDFFlags.Diffuse) if through_glossy else smooth
-        caustic = delta_only & (bounce >= 2) & lands    # L S+ D
+        caustic = delta_only & (bounce >= 2) & lands    # L S+ D (or L {S|G}+ D)
         store = smooth & (bounce >= store_from)
         if dr.hint(paths == 1, mode="scalar"):
             store &= caustic

@@ -110,7 +110,8 @@ def run_calibrate(args) -> int:
         where = (f"{args.out}/{{{','.join(result['dirs'].values())}}}" if "dirs" in result
                  else args.out)
         print(f"wrote    {where}/calibration.json, fitted_costs.toml, hwsim_fitted.toml"
-              + ("" if args.refit else " and sets/"))
+              + ("" if args.refit else " and sets/")
+              + (f"; {args.out}/calibration.json" if "dirs" in result else ""))
     return 0
 
 

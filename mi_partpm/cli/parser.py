@@ -196,7 +196,7 @@ def _experiment_options(sub):
                                             "with --refit); with two or more, their maps are "
                                             "timed interleaved in one run, each scene's files "
                                             "go into --out/SCENE/ and each fit predicts the "
-                                            "other scenes")
+                                            "next scene's times (two: both ways)")
     k.add_argument("--leaf-sizes", default="8,32,128",
                    help="comma-separated kd-tree leaf sizes (default 8,32,128)")
     k.add_argument("--radius-fractions", default="0.025,0.05,0.1",

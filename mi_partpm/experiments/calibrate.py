@@ -21,7 +21,10 @@ assumption about how threads scale, and on a shared 2-core machine one thread is
 steadier clock (a map that took 123 ms +- 25% on two threads took 55 ms +- 6% on one while
 another process kept a core busy). The tracing and the builds use every thread.
 
-Writes into ``out_dir``: ``sets/`` (``sets.json`` and one workloads folder per set),
+With several scenes (``partpm calibrate A B``), their maps are timed interleaved in one run
+and each scene's files go into ``out_dir/SCENE/``, with a ``calibration.json`` of the
+cross-scene check in ``out_dir``. For one scene, writes into ``out_dir``: ``sets/``
+(``sets.json`` and one workloads folder per set),
 ``calibration.json`` (settings, per-set summaries, the fit, its design and, given
 ``check_dir``, the cross-scene check both ways), ``fitted_costs.toml`` (the costs file) and
 ``hwsim_fitted.toml`` (an hwsim config that runs on them).
@@ -112,8 +115,10 @@ def run_calibrations(scene_names: Sequence[str], out_dir,
 
     With one scene the files go into ``out_dir``. With several, each scene's go into
     ``out_dir/SCENE/``, every scene's timed runs are interleaved with the others' (one
-    random order per repeat over all scenes' maps), each fit predicts every other scene, and
-    ``out_dir/calibration.json`` holds the cross-scene check of the first two. Timed in one
+    random order per repeat over all scenes' maps), each scene's fit is checked against the
+    next scene's maps and that one's fit against its own (both ways; the last scene is
+    checked against the first), and ``out_dir/calibration.json`` holds the first scene's
+    check. Timed in one
     run, both scenes meet the same state of the machine: timed an hour apart, the same
     scene's costs moved by about 10% here (a shared 2-core machine), as much as the
     difference the check is meant to find. ``photons``: one count for all scenes or one
@@ -313,7 +318,7 @@ def refit(out_dir, check_dir=None, progress=print) -> dict:
     out = Path(out_dir)
     saved = out / "calibration.json"
     result = json.loads(saved.read_text()) if saved.is_file() else {}
-    if "dirs" in result and not (out / "sets" / SETS_FILE).is_file():
+    if "dirs" in result:
         if check_dir is not None:
             raise ValueError("--check compares one scene with an earlier run: this run's "
                              "scenes already predict each other")
@@ -353,7 +358,7 @@ def format_calibration(result) -> str:
 
 def format_readme_table(result) -> str:
     """The README's calibration table from a ``calibration.json`` with a cross-scene check
-    (``partpm calibrate B --check A``'s): per direction the fitted costs, the fit on its own
+    (``partpm calibrate A B``'s, or ``partpm calibrate B --check A``'s): per direction the fitted costs, the fit on its own
     maps and the prediction of the other scene's, and whether the goal is met."""
     cross = result.get("check")
     if not cross:
