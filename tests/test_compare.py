@@ -348,7 +348,8 @@ def test_compare_cli(tmp_path, capsys):
     result = json.loads((tmp_path / "metrics.json").read_text())
     assert "partpm_best_vs_reference" in result["metrics"] and "partpm_best_vs_reference" in text
     assert result["best"]["photon_count"] + result["best"]["caustic_photon_count"] == 5000
-    assert result["best"]["final_gather"] == 8 and (tmp_path / "partpm_best.exr").is_file()
+    assert result["best"]["final_gather"] == 16 and (tmp_path / "partpm_best.exr").is_file()
+    assert result["best"]["caustic_radius_fraction"] == pytest.approx(0.05 / 2)
     assert 0 < result["worst_tile"]["share"] <= 1 and 0 <= result["worst_tile"]["share_other"] <= 1
     assert main(["compare", "cornell_box", "--resolution", "4x4", "--out", str(tmp_path)]) == 2
     assert "at least 7x7" in capsys.readouterr().err
