@@ -69,7 +69,6 @@ class Layer:
     photon_count: int
     paths: str = "all"
     salt: int = 0
-    caustic_through: str = "delta"
     maps: object = None
     stored: int = 0
 
@@ -160,7 +159,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                                 stream_seed(p.seed ^ layer.salt, render_seed, pass_index),
                                 self._photon_depth(), p.rr_depth, maps=maps,
                                 min_bounce=self.min_bounce(), paths=layer.paths,
-                                caustic_through=layer.caustic_through,
+                                caustic_through=self.caustic_through(),
                                 progress=lambda line: log.debug("trace: %s", line),
                                 memory_check=guard)
         # The wave's maps become this process's maps 0 .. len(maps)-1.

@@ -230,8 +230,6 @@ class PartPMIntegrator(PhotonMapper):
         if caustic:
             layers.append(Layer("caustic", self.caustic_photon_count, "caustic",
                                 salt=CAUSTIC_SALT))
-        for layer in layers:
-            layer.caustic_through = self.caustic_through()
         return layers
 
     def min_bounce(self) -> int:

@@ -28,6 +28,7 @@ from .kdtree import morton_order
 from .props import UNLIMITED_DEPTH, segment_limit
 
 __all__ = ["EyePaths", "VisiblePoints", "eye_paths", "direct_light", "first_hits",
+           "lands_on", "passes_through",
            "estimated_lobes", "lobe_context"]
 
 
@@ -36,6 +37,22 @@ def estimated_lobes(glossy: str):
     only the diffuse ones with ``"trace"``, where the glossy lobes of a surface that has both
     (rough plastic) are traced on by BSDF sampling like a surface that is only glossy."""
     return mi.BSDFFlags.Diffuse if glossy == "trace" else mi.BSDFFlags.All
+
+
+def lands_on(flags, glossy: bool) -> mi.Bool:
+    """Where a path that goes on through delta lobes (with ``glossy``, glossy ones too) stops:
+    a surface with a non-delta lobe, or with ``glossy`` one with a diffuse lobe. The photon
+    tracer's caustic paths and the final gather's rays stop by this one rule."""
+    return mi.has_flag(flags, mi.BSDFFlags.Diffuse if glossy else mi.BSDFFlags.Smooth)
+
+
+def passes_through(flags, glossy: bool) -> mi.Bool:
+    """Whether ``flags`` (a BSDF's lobes, or the lobe a sample took) hold a lobe such a path
+    goes on through: a delta one, or with ``glossy`` a glossy one."""
+    through = mi.has_flag(flags, mi.BSDFFlags.Delta)
+    if glossy:
+        through |= mi.has_flag(flags, mi.BSDFFlags.Glossy)
+    return through
 
 
 def lobe_context(lobes=None) -> mi.BSDFContext:

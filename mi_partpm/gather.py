@@ -22,7 +22,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .estimate import gather_flux
-from .eyepath import lobe_context
+from .eyepath import lands_on, lobe_context, passes_through
 from .props import UNLIMITED_DEPTH, segment_limit
 
 __all__ = ["final_gather"]
@@ -79,7 +79,6 @@ def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool,
     seen = dr.zeros(mi.Spectrum, dr.width(beta))
     ctx_through = lobe_context(mi.BSDFFlags.Delta | mi.BSDFFlags.Glossy if glossy
                                else mi.BSDFFlags.Delta)
-    stops = mi.BSDFFlags.Diffuse if glossy else mi.BSDFFlags.Smooth
     hit = dr.zeros(mi.SurfaceInteraction3f, dr.width(beta))
     reached = dr.zeros(mi.Bool, dr.width(beta))
     for step in range(min(chain, max(limit - 1, 1))):
@@ -90,14 +89,11 @@ def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool,
             seen += dr.select(lit, beta * emitter.eval(si, lit), 0.0)
         active &= si.is_valid()
         bsdf = si.bsdf(ray)
-        stop = active & mi.has_flag(bsdf.flags(), stops)
+        flags = bsdf.flags()
+        stop = active & lands_on(flags, glossy)
         hit = dr.select(stop, si, hit)
         reached |= stop
-        flags = bsdf.flags()
-        goes_on = mi.has_flag(flags, mi.BSDFFlags.Delta)
-        if glossy:
-            goes_on |= mi.has_flag(flags, mi.BSDFFlags.Glossy)
-        active &= ~stop & goes_on
+        active &= ~stop & passes_through(flags, glossy)
         bs, weight = bsdf.sample(ctx_through, si, rng.next_float32(),
                                  mi.Point2f(rng.next_float32(), rng.next_float32()), active)
         beta = dr.select(active, beta * weight, beta)

@@ -20,6 +20,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .eyepath import lands_on, passes_through
 from .memory import TRACE_BATCH
 from .photons import Photons, empty_photons, encode_direction
 from .props import segment_limit
@@ -321,7 +322,7 @@ def _trace_paths(scene, rng, ray, power, out, counter, capacity, max_depth, rr_d
         smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth)
         # Where a caustic path ends: its first non-delta surface, or with glossy bounces its
         # first surface with a diffuse lobe.
-        lands = active & mi.has_flag(flags, mi.BSDFFlags.Diffuse) if through_glossy else smooth
+        lands = active & lands_on(flags, through_glossy)
         caustic = delta_only & (bounce >= 2) & lands    # L S+ D (or L {S|G}+ D)
         store = smooth & (bounce >= store_from)
         if dr.hint(paths == 1, mode="scalar"):
@@ -347,10 +348,7 @@ def _trace_paths(scene, rng, ray, power, out, counter, capacity, max_depth, rr_d
         # The lobes a caustic path may bounce on before the surface it is stored on; the path
         # is no caustic one after that surface, whichever of its lobes it left by (a plastic's
         # coat), since its caustic photon was stored there.
-        through = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-        if dr.hint(through_glossy, mode="scalar"):
-            through |= mi.has_flag(bs.sampled_type, mi.BSDFFlags.Glossy)
-        delta_only &= through & ~lands
+        delta_only &= passes_through(bs.sampled_type, through_glossy) & ~lands
         active &= dr.any(power != 0) & dr.all(dr.isfinite(power))
         if bounce >= rr_from:
             q = dr.minimum(dr.max(bsdf_weight), 0.95)

@@ -142,8 +142,8 @@ def run_calibrations(scene_names: Sequence[str], out_dir,
         raise ValueError("--check compares one scene with an earlier run: with several "
                          "scenes, each already predicts the others")
     leaves, fracs = check_grid(leaf_sizes, radius_fractions)
-    lcms = [_check(maps_list, n, repeats)[1] for n in counts_]
-    maps_list = sorted(set(int(n) for n in maps_list))
+    checked = [_check(maps_list, n, repeats) for n in counts_]
+    maps_list, lcms = checked[0][0], [lcm for _, lcm in checked]
     if threads is not None and (not isinstance(threads, int) or threads < 1):
         raise ValueError(f"--threads must be an integer >= 1, got {threads!r}")
     other = load_workload_sets(_sets_dir(check_dir)) if check_dir is not None else None
@@ -170,26 +170,33 @@ def run_calibrations(scene_names: Sequence[str], out_dir,
     used_threads = threads if threads is not None else previous
     order = ("interleaved: every repeat times every (set, n, map) once, in a seeded random "
              "order" + (f", over the maps of {len(runs)} scenes" if len(runs) > 1 else ""))
-    for run in runs:
-        run.sets, run.settings = _sets_of(run, leaves, fracs, maps_list, resolution, spp,
-                                          repeats, used_threads, seed, order)
+    made = [_sets_of(run, leaves, fracs, maps_list, resolution, spp, repeats, used_threads,
+                     seed, order) for run in runs]
+    # Each scene checked against the next: one cross-check per pair, read both ways.
+    checks = {}
+    if len(runs) > 1:
+        for i in range(len(runs)):
+            j = (i + 1) % len(runs)
+            if (j, i) in checks:
+                c = checks[j, i]
+                checks[i, j] = {**c, "scenes": c["scenes"][::-1],
+                                "directions": c["directions"][::-1]}
+            else:
+                checks[i, j] = cross_check(made[i][0], made[j][0], runs[i].name, runs[j].name)
     results = []
-    for i, run in enumerate(runs):
+    for i, (run, (sets, settings)) in enumerate(zip(runs, made)):
         where = out if len(runs) == 1 else out / scene_dir_name(run.name)
         where.mkdir(parents=True, exist_ok=True)
-        save_workload_sets(where / "sets", run.sets, scene=run.name, settings=run.settings)
-        result = {"scene": run.name, "code": code_version(), "settings": run.settings,
-                  "photons_stored": len(run.setup.traced), "sets": _summaries(run.sets)}
-        peer = other
-        if len(runs) > 1:
-            j = (i + 1) % len(runs)
-            peer = ({"scene": runs[j].name}, runs[j].sets)
-        results.append(_fit_and_write(where, result, run.sets, peer, say))
+        save_workload_sets(where / "sets", sets, scene=run.name, settings=settings)
+        result = {"scene": run.name, "code": code_version(), "settings": settings,
+                  "photons_stored": len(run.setup.traced), "sets": _summaries(sets)}
+        check = checks.get((i, (i + 1) % len(runs)))
+        results.append(_fit_and_write(where, result, sets, other, say, check))
     if len(runs) == 1:
         return results[0]
     combined = {"scenes": names, "code": code_version(),
                 "dirs": {r["scene"]: scene_dir_name(r["scene"]) for r in results},
-                "runs": results, "check": results[0]["check"], "settings": runs[0].settings}
+                "runs": results, "check": results[0]["check"], "settings": made[0][1]}
     (out / "calibration.json").write_text(json.dumps(combined, indent=2) + "\n")
     return combined
 
@@ -201,7 +208,7 @@ class _Run:
     def __init__(self, name, photons, setup, radii, forests):
         self.name, self.photons, self.setup = name, photons, setup
         self.radii, self.forests = radii, forests
-        self.counts, self.times, self.sets, self.settings = None, None, None, None
+        self.counts, self.times = None, None
 
 
 def _sets_of(run: _Run, leaves, fracs, maps_list, resolution, spp, repeats, threads, seed,
@@ -290,7 +297,10 @@ def _summaries(sets) -> list:
     return out
 
 
-def _fit_and_write(out: Path, result: dict, sets, other, say) -> dict:
+def _fit_and_write(out: Path, result: dict, sets, other, say, check=None) -> dict:
+    """Fit ``sets``, write the costs, the hwsim config and ``calibration.json`` into ``out``;
+    the cross-scene check is ``check`` if given, else made against ``other`` (index, sets)
+    if given."""
     scene = result["scene"]
     say(f"fitting {sum(w.n for st in sets for w in st.loads.values())} maps of {len(sets)} "
         f"sets ...")
@@ -302,8 +312,8 @@ def _fit_and_write(out: Path, result: dict, sets, other, say) -> dict:
     (out / "hwsim_fitted.toml").write_text(
         "# hwsim on the costs fitted to this calibration: partpm hwsim WORKLOAD_DIR --config "
         "this.toml --out DIR\n[pe]\ncosts = \"fitted\"\nfitted_costs = \"fitted_costs.toml\"\n")
-    result["check"] = None
-    if other is not None:
+    result["check"] = check
+    if check is None and other is not None:
         other_index, other_sets = other
         result["check"] = cross_check(sets, other_sets, scene,
                                       other_index.get("scene", "other"))
