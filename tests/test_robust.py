@@ -102,6 +102,26 @@ def test_batches_give_the_same_photons():
     np.testing.assert_array_equal(a.map_id[ka], b.map_id[kb])
 
 
+def test_lanes_that_take_photons_in_turn_give_the_same_photons(monkeypatch):
+    """A tracer lane takes the next photon when its path ends: how many photons a lane takes
+    must change nothing, not even the order of the stored photons. One photon per lane is a
+    tracer whose every path runs in a lane of its own."""
+    import mi_partpm.trace as trace
+    scene = mi_partpm.load_scene("glossy_spheres", resolution=(8, 8), spp=1)
+    a = trace_photons(scene, 20_000, 3, 1, paths="global", caustic_through="glossy")
+    monkeypatch.setattr(trace, "PHOTONS_PER_LANE", 1)
+    b = trace_photons(scene, 20_000, 3, 1, paths="global", caustic_through="glossy")
+    monkeypatch.setattr(trace, "PHOTONS_PER_LANE", 37)
+    c = trace_photons(scene, 20_000, 3, 1, paths="global", caustic_through="glossy")
+    assert trace.lane_count(20_000) == 541 and len(a) > 20_000
+    for other in (b, c):
+        assert len(a) == len(other) and a.segments == other.segments
+        np.testing.assert_array_equal(a.position, other.position)
+        np.testing.assert_array_equal(a.power, other.power)
+        np.testing.assert_array_equal(a.map_id, other.map_id)
+        np.testing.assert_array_equal(np.asarray(a.bounces), np.asarray(other.bounces))
+
+
 # ---------------------------------------------------------------- no NaN or inf, ever
 
 def grazing_scene(black=False):

@@ -19,7 +19,9 @@ moved the comparison within the run):
 - the kd-tree build vs ``cKDTree(balanced_tree=True)`` at 3 x 10^5, 10^6 and 3 x 10^7
   photons (targets 1x, 1x, 1.5x);
 - photon tracing vs Mitsuba's ``path`` (max_depth 2), ray segments per second, both counted:
-  ours by the tracer, path's by replaying its decisions (:func:`path_segments`) (target 0.8x);
+  ours by the tracer, path's by replaying its decisions (:func:`path_segments`) (target 0.8x),
+  and beside them the rate of Mitsuba's closest-hit intersection alone on as many incoherent
+  rays, the bound of a tracer that intersects every segment;
 - photons traced per second for every kind of emitter, against an area light (none more than
   5x slower);
 - memory per stored photon, MEASURED in a fresh process rendering 10^6 and 10^7 photons: the
@@ -253,6 +255,7 @@ def _bench_tracing(b: _Bench, scene_name, resolution, count, path_spp):
     """Row 5: photon tracing vs Mitsuba's path tracer, segments per second, both counted."""
     scene = load_scene(scene_name, resolution=resolution, spp=1)
     segments = trace_photons(scene, count, 1, 2).segments        # the same photons each round
+    bound = _intersection_rate(scene, segments, b.repeats)
     # Two baselines: path at max_depth 2 (camera, shadow and one bounce ray per sample: the
     # coherent camera rays flatter it) and at max_depth 8 without Russian roulette (mostly
     # incoherent bounces, like a photon's), its samples cut to keep the same work. Each is
@@ -268,7 +271,28 @@ def _bench_tracing(b: _Bench, scene_name, resolution, count, path_spp):
         b.row(f"tracing, {count:,} photons, vs path max_depth {depth}", ours_rate / 1e6,
               path_rate / 1e6, f"Mitsuba path (max_depth {depth}, no Russian roulette)", 0.8,
               float(ours_rate / path_rate), "our rate / baseline rate", unit="M segments/s",
-              rounds=(segments / ours_t) / (path_count / path_t))
+              rounds=(segments / ours_t) / (path_count / path_t),
+              intersections_per_s=bound, of_intersections=float(ours_rate / bound))
+        b.say(f"    Mitsuba's ray_intersect alone, {segments:,} incoherent rays: "
+              f"{bound / 1e6:.4g} M rays/s; the tracer runs at {ours_rate / bound:.2f} of it")
+
+
+def _intersection_rate(scene, count: int, repeats: int) -> float:
+    """Closest hits per second of ``scene.ray_intersect`` alone (every surface field, as the
+    tracer asks for) on ``count`` incoherent rays: origins uniform in the scene's bounding box
+    shrunk by a tenth, directions uniform on the sphere. A bound on any tracer's segments per
+    second that intersects each segment, as a photon's must; a shadow ray (``ray_test``, which
+    path counts as a segment too) costs a fraction of it."""
+    rng = mi.PCG32(count)
+    box = scene.bbox()
+    lo, extent = box.min + 0.05 * box.extents(), 0.9 * box.extents()
+    o = mi.Point3f(*[lo[a] + extent[a] * rng.next_float32() for a in range(3)])
+    d = mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
+    ray = mi.Ray3f(o, d)
+    sync(ray)
+    seconds = median_time(lambda: scene.ray_intersect(ray, ray_flags=mi.RayFlags.All,
+                                                      coherent=False).p, repeats)
+    return count / seconds
 
 
 def _bench_emitters(b: _Bench, count: int):
