@@ -101,12 +101,18 @@ def map_bytes(photon_counts, leaf_size: int = LEAF_SIZE):
 
 
 def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE,
-                      keep_bounce: bool = False) -> PhotonMaps:
-    """Build the kd-tree of every map of ``photons`` and put the attributes in tree order
+                      keep_bounce: bool = False, layout: str = "shared") -> PhotonMaps:
+    """Build the kd-trees of the maps of ``photons`` and put the attributes in tree order
     (with ``keep_bounce``, also each photon's segment count). Everything stays on the
-    device."""
+    device.
+
+    ``layout`` (:data:`~mi_partpm.kdtree.LAYOUTS`): "shared" (default), the maps of one
+    process share split planes in groups, so an estimate over all of them descends once per
+    group, and each map's photons and estimate stay its own; "separate", every map's tree is
+    built from its photons alone, as the paper's processing elements build theirs (what the
+    speedup experiment and hwsim's workloads measure)."""
     forest = build_forest(photons.points, photons.maps, photons.map_count, leaf_size,
-                          payload=photons.code)
+                          payload=photons.code, layout=layout)
     order = forest.tree_order
     power = dr.gather(mi.Spectrum, photons.flux, order)
     bounce = dr.gather(mi.UInt32, photons.bounces, order) if keep_bounce else None

@@ -30,10 +30,10 @@ def _reference(points, weights, queries, r):
     return lo, hi, np.array([len(i) for i in inner]), np.array([len(i) for i in outer])
 
 
-def _check_against_scipy(points, queries, r, map_ids=None, n_maps=None):
+def _check_against_scipy(points, queries, r, map_ids=None, n_maps=None, layout="separate"):
     rng = np.random.default_rng(3)
     weights = rng.random(points.shape[0]).astype(np.float32)
-    forest = build_forest(points, map_ids, n_maps)
+    forest = build_forest(points, map_ids, n_maps, layout=layout)
     sums, found, _ = _query_sums(forest, weights, queries, r)
     lo, hi, n_lo, n_hi = _reference(points, weights, queries, r)
     assert np.all(found >= n_lo) and np.all(found <= n_hi), "photon sets differ from scipy's"
@@ -58,20 +58,68 @@ def test_tree_structure_is_balanced_median_split():
     assert np.array_equal(np.sort(f.order), np.arange(1000))
 
 
-def test_uneven_map_sizes_and_empty_maps():
+@pytest.mark.parametrize("layout", ["separate", "shared"])
+def test_uneven_map_sizes_and_empty_maps(layout):
     pts = np.random.default_rng(1).random((37, 3))
     ids = np.r_[np.zeros(30, int), np.full(7, 2)]
-    f = build_forest(pts, ids, map_count=4)
+    f = build_forest(pts, ids, map_count=4, layout=layout)
     assert list(f.photon_count) == [30, 0, 7, 0]
-    _check_against_scipy(pts, pts[:10], 0.3, ids, 4)
+    _check_against_scipy(pts, pts[:10], 0.3, ids, 4, layout)
 
 
-def test_radius_query_matches_scipy_on_random_photons():
+@pytest.mark.parametrize("layout", ["separate", "shared"])
+def test_radius_query_matches_scipy_on_random_photons(layout):
     rng = np.random.default_rng(2)
     pts = rng.random((20000, 3))
     queries = rng.random((3000, 3))
-    _check_against_scipy(pts, queries, 0.05)
-    _check_against_scipy(pts, queries, 0.05, rng.integers(0, 5, 20000), 5)
+    _check_against_scipy(pts, queries, 0.05, layout=layout)
+    _check_against_scipy(pts, queries, 0.05, rng.integers(0, 5, 20000), 5, layout)
+
+
+def test_shared_layout_keeps_every_map_its_own_photons(monkeypatch):
+    """Maps that share split planes: each leaf holds every map's photons as one run per map;
+    a query over one map finds exactly that map's photons within r (brute force), a query
+    over a range of maps the sum of theirs, and groups of maps (several trees) too."""
+    from mi_partpm.kdtree import forest as forest_module
+    from mi_partpm.kdtree import shared_leaf_size
+    monkeypatch.setattr(forest_module, "GROUP_PHOTONS", 9_000)   # maps of about 3,000
+    rng = np.random.default_rng(12)
+    n = 7
+    pts = rng.random((21_000, 3)).astype(np.float32)
+    ids = rng.integers(0, n, 21_000)
+    forest = build_forest(pts, ids, n, leaf_size=8, layout="shared")
+    assert forest.tree_count == 3 and list(forest.tree_map_count) == [2, 3, 2]
+    # Leaf runs: entry e of tree t is (leaf j, map m); runs are contiguous and hold only m.
+    table = forest.leaf_start.astype(np.int64)
+    tree_ids = ids[forest.order]
+    for t in range(forest.tree_count):
+        s, f0 = int(forest.tree_map_count[t]), int(forest.tree_first_map[t])
+        leaves = int(forest.internal_count[t]) + 1
+        base = int(forest.leaf_base[t])
+        runs = table[base: base + leaves * s + 1]
+        assert np.all(np.diff(runs) >= 0)
+        for e in range(leaves * s):
+            assert np.all(tree_ids[runs[e]:runs[e + 1]] == f0 + e % s)
+        leaf_sizes = runs[s::s] - runs[:-1:s]
+        assert leaf_sizes.max() <= shared_leaf_size(8, s)
+    queries = rng.random((400, 3)).astype(np.float32)
+    q = mi.Point3f(*[queries[:, k] for k in range(3)])
+    w = mi.Float(np.ones(len(pts), np.float32))
+    r = 0.08
+    d2 = ((queries[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
+    for maps in [(m, m + 1) for m in range(n)] + [(0, n), (2, 6), (5, 7)]:
+        _, stats = radius_query(forest, q, r, lambda i, dd, a, st: dr.gather(mi.Float, w, i, a),
+                                maps=maps, with_stats=True)
+        inside = (d2 < r * r * (1 - 1e-5)) & ((ids >= maps[0]) & (ids < maps[1]))[None]
+        edge = (d2 <= r * r * (1 + 1e-5)) & ((ids >= maps[0]) & (ids < maps[1]))[None]
+        found = stats.photons_found.numpy()
+        assert np.all(found >= inside.sum(1)) and np.all(found <= edge.sum(1)), maps
+        assert found.sum() > 0
+
+
+def test_build_forest_rejects_an_unknown_layout():
+    with pytest.raises(ValueError, match="layout must be one of 'separate', 'shared', got 'x'"):
+        build_forest(np.zeros((4, 3)), layout="x")
 
 
 def test_radius_query_matches_scipy_on_traced_photons():
@@ -121,9 +169,10 @@ def test_partition_invariance_eq2(n):
     np.testing.assert_allclose(parts, a, rtol=1e-4, atol=1e-6 * a.max())
 
 
-def _check_knn_against_scipy(points, queries, k, max_radius=None, map_ids=None, n_maps=None):
+def _check_knn_against_scipy(points, queries, k, max_radius=None, map_ids=None, n_maps=None,
+                             layout="separate"):
     """Same neighbours, same distances as cKDTree.query (distances to float32 rounding)."""
-    forest = build_forest(points, map_ids, n_maps)
+    forest = build_forest(points, map_ids, n_maps, layout=layout)
     dist, idx = knn_neighbours(forest, queries, k, max_radius)
     bound = np.inf if max_radius is None else max_radius
     ref_d, ref_i = cKDTree(points.astype(np.float32).astype(np.float64)).query(
@@ -143,8 +192,11 @@ def test_knn_matches_scipy_query():
     queries = rng.random((2000, 3))
     _check_knn_against_scipy(pts, queries, 1)
     _check_knn_against_scipy(pts, queries, 50)
-    # Over several maps, the k nearest of all of them (the same photons as one map).
-    _check_knn_against_scipy(pts, queries, 16, map_ids=rng.integers(0, 5, 20000), n_maps=5)
+    # Over several maps, the k nearest of all of them (the same photons as one map), with
+    # a tree per map and with maps sharing one.
+    ids = rng.integers(0, 5, 20000)
+    _check_knn_against_scipy(pts, queries, 16, map_ids=ids, n_maps=5)
+    _check_knn_against_scipy(pts, queries, 16, map_ids=ids, n_maps=5, layout="shared")
 
 
 def test_knn_max_radius_caps_the_search_like_jensen():

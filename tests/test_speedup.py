@@ -291,7 +291,8 @@ def test_bench_smoke(tmp_path, capsys):
                  for o in ("unsorted", "sorted")]
                 + [f"kNN k=50, {w}, {o}" for w in ("cornell_box", "room")
                    for o in ("unsorted", "sorted")]
-                + ["integrator estimate, 32 maps in turn / 1 map"]
+                + ["integrator estimate, 32 maps / 1 map",
+                   "estimate, 32 separate trees in turn / 1 map"]
                 + [f"build, {n:,} photons" for n in smoke["builds"]]
                 + [f"tracing, {smoke['trace']:,} photons, vs path max_depth {d}" for d in (2, 8)]
                 + [f"emitting, {kind}" for kind in EMITTER_KINDS if kind != "area_rectangle"]
@@ -301,10 +302,16 @@ def test_bench_smoke(tmp_path, capsys):
     for name, r in rows.items():
         assert r["ratio_meaning"] in RATIO_OF, (name, r["ratio_meaning"])
         ratio, unit = RATIO_OF[r["ratio_meaning"]]
-        assert np.isfinite([r["ours"], r["baseline"], r["ratio"], r["target"]]).all(), name
-        assert r["ours"] > 0 and r["baseline"] > 0 and r["target"] > 0, name
+        assert np.isfinite([r["ours"], r["baseline"], r["ratio"]]).all(), name
+        assert r["ours"] > 0 and r["baseline"] > 0, name
         assert r["ratio"] == pytest.approx(ratio(r), rel=1e-9), name
         assert r["unit"] == unit, (name, r["unit"])
+        if r["target"] is None:
+            # The one reference row: the paper's layout beside the integrator's.
+            assert name.startswith("estimate, 32 separate trees"), name
+            assert r["target_is"] == "none" and r["met"] is None, name
+            continue
+        assert np.isfinite(r["target"]) and r["target"] > 0, name
         assert r["target_is"] in ("at least", "at most"), name
         assert r["met"] is (r["ratio"] >= r["target"] if r["target_is"] == "at least"
                             else r["ratio"] <= r["target"]), name
@@ -317,7 +324,9 @@ def test_bench_smoke(tmp_path, capsys):
             assert lo * (1 - 1e-9) <= r["ratio"] <= hi * (1 + 1e-9), (name, lo, r["ratio"], hi)
     for name in expected[:4]:
         assert rows[name]["photons_per_query"] > 0, name
-    assert rows["integrator estimate, 32 maps in turn / 1 map"]["visible_points"] > 0
+    for name in ("integrator estimate, 32 maps / 1 map",
+                 "estimate, 32 separate trees in turn / 1 map"):
+        assert rows[name]["visible_points"] > 0
     for n in smoke["memory"]:
         memory = rows[f"memory, {n:,} photons emitted"]
         print(f"memory, {n:,} photons: {memory['stored']:,} stored, resident "

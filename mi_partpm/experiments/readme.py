@@ -214,11 +214,12 @@ def format_bench(results: dict) -> str:
         if ratio and r.get("ratio_range"):
             lo, hi = r["ratio_range"]
             ratio += f" ({lo:.2f}-{hi:.2f})"
-        target = (f"{r['target']:g}x" if r["target_is"] == "at least"
-                  else f"<= {r['target']:g}")
+        target = ("-" if r["target"] is None else f"{r['target']:g}x"
+                  if r["target_is"] == "at least" else f"<= {r['target']:g}")
+        met = "-" if r["met"] is None else "yes" if r["met"] else "no"
         rows.append([r["benchmark"], f"{_value(r['ours'])} {unit}",
                      f"{r['baseline_name']}: {_value(r['baseline'])} {unit}", ratio, target,
-                     "yes" if r["met"] else "no"])
+                     met])
     return _table(["benchmark", "ours", "baseline", "ratio", "target", "met"], "lrrrrl", rows)
 
 

@@ -157,7 +157,8 @@ def _setup(scene_name, photons, streams, resolution, spp, radius_fraction, seed,
 
 def build_maps(s: _Setup, n: int, leaf_size: int = LEAF_SIZE):
     """The n maps of the experiment's photons (map j holds the streams i = j mod n)."""
-    return build_photon_maps(s.traced.with_maps(s.traced.maps % n, n), leaf_size=leaf_size)
+    return build_photon_maps(s.traced.with_maps(s.traced.maps % n, n), leaf_size=leaf_size,
+                             layout="separate")
 
 
 def time_map(s: _Setup, maps, m: int, radius: float) -> float:

@@ -1,7 +1,8 @@
 """Balanced kd-trees over partitioned photon maps, and the queries over them.
 
-- :mod:`.forest`: the forest (one implicit balanced tree per map, flat device arrays) and its
-  build; :func:`tree_bytes` counts a tree's bytes;
+- :mod:`.forest`: the forest (implicit balanced trees in flat device arrays, one per map or
+  one per group of maps sharing split planes) and its build; :func:`tree_bytes` counts a
+  separate tree's bytes;
 - :mod:`.radius`: the fixed-radius query (eq. 2), a stackless while-while walk;
 - :mod:`.knn`: the k-nearest-neighbour query (eq. 1), nearer child first with a per-lane heap.
 
@@ -9,12 +10,13 @@ Both queries walk their query points in Morton order and answer in the caller's,
 photon they accept to a callback with its squared distance, so a density kernel is one function
 of the distance (:mod:`mi_partpm.estimate`).
 """
-from .forest import (LEAF_ENTRY_BYTES, LEAF_SIZE, NODE_BYTES, RECORD_FLOATS, Forest,
-                     build_forest, morton_codes, morton_order, tree_bytes, tree_depth)
+from .forest import (LAYOUTS, LEAF_ENTRY_BYTES, LEAF_SIZE, NODE_BYTES, RECORD_FLOATS, Forest,
+                     build_forest, morton_codes, morton_order, shared_leaf_size, tree_bytes,
+                     tree_depth)
 from .knn import KnnResult, knn_neighbours, knn_query
 from .radius import ORDERS, QueryStats, photon_position, radius_query
 
 __all__ = ["Forest", "build_forest", "morton_codes", "morton_order", "tree_bytes",
-           "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES", "RECORD_FLOATS",
+           "tree_depth", "shared_leaf_size", "LAYOUTS", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES", "RECORD_FLOATS",
            "radius_query", "QueryStats", "photon_position", "ORDERS", "knn_query",
            "KnnResult", "knn_neighbours"]

@@ -1,7 +1,17 @@
 """The forest: one balanced kd-tree per photon map, in flat device arrays, and its build.
 
-A *forest* holds the n partial photon maps of eq. (2) of the paper, one kd-tree per map. Every
-tree is balanced and implicit: node ``j`` of a map has children ``2j+1`` and ``2j+2``; nodes
+A *forest* holds the n partial photon maps of eq. (2) of the paper. It has two layouts
+(:data:`LAYOUTS`):
+
+- ``"separate"``: one kd-tree per map, each built from its own photons alone, as a processing
+  element of the paper builds the map it holds;
+- ``"shared"``: consecutive maps share one tree's split planes (a group of at most
+  :data:`GROUP_PHOTONS` photons), each leaf holding the photons of every map of the group, map
+  after map. Each map keeps its own photons and its own run of every leaf (a walk over one
+  map reads only its photons), but a walk over several maps descends once and scans their
+  runs of a leaf in turn, instead of descending every map's tree from its root.
+
+Every tree is balanced and implicit: node ``j`` of a map has children ``2j+1`` and ``2j+2``; nodes
 ``0 .. I-1`` are internal (``I = 2**D - 1``) and nodes ``I .. 2I`` are the ``2**D`` leaves,
 each holding a contiguous run of at most ``leaf_size`` photons. A node at level ``d`` covering
 ``c`` photons is split at their median along the longest axis of the node's bounding box
@@ -13,7 +23,8 @@ Everything lives on the device (Dr.Jit arrays of the active variant):
   photon map keeps the photon's direction code there), so a distance test and the payload
   are one 16-byte load;
 - ``nodes``: 2 floats per internal node, the split value and the split axis (its bits);
-- ``leaf_start``: per map, the first photon of every leaf and the map's end.
+- ``leaf_table``: per tree, the first photon of every leaf (of every map's run of a leaf, in
+  a shared tree) and the tree's end.
 
 The build (:func:`build_forest`) sorts the points once per axis on the device (Dr.Jit's radix
 sort), then splits one tree level at a time over all maps at once, with a handful of
@@ -28,8 +39,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["Forest", "build_forest", "morton_codes", "morton_order", "tree_bytes",
-           "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES", "RECORD_FLOATS"]
+__all__ = ["Forest", "build_forest", "shared_leaf_size", "morton_codes", "morton_order", "tree_bytes",
+           "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES", "RECORD_FLOATS",
+           "LAYOUTS"]
 
 #: Default number of photons per leaf. With the while-while walk of :mod:`.radius` large
 #: leaves pay: on 200,000 Morton-ordered hit points of the Cornell box (r = 1/20, 460 photons
@@ -45,47 +57,71 @@ LEAF_ENTRY_BYTES = 4
 #: Floats per photon record: x, y, z and a 32-bit payload.
 RECORD_FLOATS = 4
 
+#: Forest layouts: one tree per map, or groups of maps sharing one tree's split planes.
+LAYOUTS = ("separate", "shared")
 
-def tree_depth(counts, leaf_size: int = LEAF_SIZE) -> np.ndarray:
-    """Depth D of the tree of a map of ``counts`` photons: the smallest D with
-    ceil(c / 2**D) <= leaf_size (per map)."""
+#: A shared tree of s maps has leaves of at most max(leaf_size, SHARED_LEAF_PER_MAP * s)
+#: photons, so its leaf table (one entry per map and leaf) stays under a byte per photon.
+SHARED_LEAF_PER_MAP = 4
+
+
+def tree_depth(counts, leaf_size=LEAF_SIZE) -> np.ndarray:
+    """Depth D of the tree of ``counts`` photons: the smallest D with
+    ceil(c / 2**D) <= leaf_size (per tree; ``leaf_size`` may be one per tree)."""
     counts = np.asarray(counts, dtype=np.int64)
+    leaf_size = np.asarray(leaf_size, dtype=np.int64)
     leaves_needed = np.maximum(1, -(-counts // leaf_size))
     return np.ceil(np.log2(leaves_needed)).astype(np.int64)
 
 
 def tree_bytes(counts, leaf_size: int = LEAF_SIZE) -> np.ndarray:
-    """Bytes of the tree of a map of ``counts`` photons (per map): ``2**D - 1`` internal
-    nodes of :data:`NODE_BYTES` and a leaf table of ``2**D + 1`` entries."""
+    """Bytes of the separate tree of a map of ``counts`` photons (per map): ``2**D - 1``
+    internal nodes of :data:`NODE_BYTES` and a leaf table of ``2**D + 1`` entries."""
     depth = tree_depth(counts, leaf_size)
     return ((1 << depth) - 1) * NODE_BYTES + ((1 << depth) + 1) * LEAF_ENTRY_BYTES
 
 
+def shared_leaf_size(leaf_size: int, maps_in_tree) -> np.ndarray:
+    """The most photons a leaf of a tree shared by ``maps_in_tree`` maps holds (per tree):
+    ``leaf_size`` for a tree of one map, at least :data:`SHARED_LEAF_PER_MAP` per map else."""
+    s = np.asarray(maps_in_tree, dtype=np.int64)
+    return np.where(s > 1, np.maximum(leaf_size, SHARED_LEAF_PER_MAP * s), leaf_size)
+
+
 @dataclass
 class Forest:
-    """The n kd-trees of one partitioned photon map, on the device.
+    """The n partial photon maps, as kd-trees on the device (one per map, or one per group
+    of maps sharing split planes: :data:`LAYOUTS`).
 
-    Photons are in tree order: map 0's photons first, each map's photons ordered so that
-    every leaf is a contiguous run. ``tree_order`` maps a tree-order index back to the
-    caller's photon index.
+    Photons are in tree order: tree 0's photons first, each tree's photons ordered so that
+    every leaf is a contiguous run and, in a shared tree, every map's part of a leaf too.
+    ``tree_order`` maps a tree-order index back to the caller's photon index.
 
     Attributes
     ----------
     records : mi.Float, 4 N entries
         Per photon in tree order: x, y, z and a 32-bit payload (float bits).
     nodes : mi.Float, 2 I entries (at least 2)
-        Per internal node, map after map: the split value and the split axis (0, 1, 2, as
+        Per internal node, tree after tree: the split value and the split axis (0, 1, 2, as
         float bits).
     leaf_table : mi.UInt32
-        For map m, entries ``leaf_base[m] .. leaf_base[m] + L_m`` are the first photon of each
-        leaf and, last, the end of the map's photons (global tree-order indices).
+        For tree t of s maps (its first map f), entry ``leaf_base[t] + j s + (m - f)`` is the
+        first photon of map m's run of leaf j, and entry ``leaf_base[t] + L_t s`` the end of
+        the tree's photons (global tree-order indices): map m's run of leaf j ends where the
+        next entry starts. A separate tree has s = 1.
     tree_order : mi.UInt32, N entries
         ``records`` entry t holds the caller's photon ``tree_order[t]``.
-    node_base, leaf_base, internal_count, photon_count : (n,) int64 NumPy arrays
-        Per-map offsets into ``nodes`` and ``leaf_table``, internal-node count ``I_m`` and the
-        number of photons stored in the map.
+    node_base, leaf_base, internal_count : (T,) int64 NumPy arrays
+        Per tree: offsets into ``nodes`` and ``leaf_table``, and its internal-node count.
+    tree_first_map, tree_map_count : (T,) int64 NumPy arrays
+        Per tree: its first map and its number of maps (1 in the separate layout).
+    map_tree, photon_count : (n,) int64 NumPy arrays
+        Per map: its tree and the number of photons stored in it.
     leaf_size : int
-        The most photons a leaf holds.
+        The most photons a leaf of a separate tree holds (a shared tree's leaves:
+        :func:`shared_leaf_size`).
+    layout : str
+        "separate" or "shared".
 
     The NumPy properties :attr:`points`, :attr:`order`, :attr:`split_value`,
     :attr:`split_axis` and :attr:`leaf_start` copy the device arrays to the host, for
@@ -101,11 +137,26 @@ class Forest:
     internal_count: np.ndarray
     photon_count: np.ndarray
     leaf_size: int
+    tree_first_map: np.ndarray = None
+    tree_map_count: np.ndarray = None
+    map_tree: np.ndarray = None
+    layout: str = "separate"
     _tables: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self):
+        n = self.photon_count.shape[0]
+        if self.map_tree is None:                 # one tree per map
+            self.map_tree = np.arange(n, dtype=np.int64)
+            self.tree_first_map = np.arange(n, dtype=np.int64)
+            self.tree_map_count = np.ones(n, dtype=np.int64)
 
     @property
     def map_count(self) -> int:
         return int(self.photon_count.shape[0])
+
+    @property
+    def tree_count(self) -> int:
+        return int(self.tree_first_map.shape[0])
 
     @property
     def size(self) -> int:
@@ -113,25 +164,51 @@ class Forest:
         return int(self.photon_count.sum())
 
     @property
+    def tree_nbytes(self) -> np.ndarray:
+        """Bytes of each tree: its nodes and its leaf table, photons not included."""
+        return self.internal_count * NODE_BYTES + \
+            ((self.internal_count + 1) * self.tree_map_count + 1) * LEAF_ENTRY_BYTES
+
+    @property
     def map_nbytes(self) -> np.ndarray:
-        """Bytes of each map's tree (nodes and leaf table), photons not included."""
-        return tree_bytes(self.photon_count, self.leaf_size)
+        """Bytes of each map's tree (nodes and leaf table), photons not included; a shared
+        tree's bytes are split over its maps by their photons."""
+        tree_photons = np.zeros(self.tree_count, dtype=np.int64)
+        np.add.at(tree_photons, self.map_tree, self.photon_count)
+        t = self.map_tree
+        share = np.where(tree_photons[t] > 0, self.photon_count / np.maximum(tree_photons[t], 1),
+                         1.0 / self.tree_map_count[t])
+        return np.round(self.tree_nbytes[t] * share).astype(np.int64)
 
     @property
     def nbytes(self) -> int:
         """Bytes of all trees (nodes and leaf tables), photons not included."""
-        return int(self.map_nbytes.sum())
+        return int(self.tree_nbytes.sum())
 
     def depth(self, m: int) -> int:
-        """Depth D of map m's tree (0 for a map that is a single leaf)."""
-        return int(np.log2(int(self.internal_count[m]) + 1))
+        """Depth D of map m's tree (0 for a tree that is a single leaf)."""
+        return int(np.log2(int(self.internal_count[self.map_tree[m]]) + 1))
 
-    def tables(self) -> dict:
-        """The per-map offsets as Dr.Jit arrays (made once)."""
-        if not self._tables:
-            self._tables = {name: mi.UInt32(getattr(self, name).astype(np.uint32))
-                            for name in ("node_base", "leaf_base", "internal_count")}
-        return self._tables
+    def walk_table(self, maps=None):
+        """What a walk over maps ``first .. stop-1`` (default all) reads per tree, as one
+        device array of 5 entries per tree it visits: node base, the leaf-table entry of map
+        ``first`` in the tree's leaf 0, internal-node count, entries per leaf (the tree's
+        maps) and how many of them the walk reads (its maps in the range). Map m's run of
+        leaf j is then ``[table[b + j s], table[b + j s + span])``. Returns (array, trees)."""
+        first, stop = (0, self.map_count) if maps is None else (int(maps[0]), int(maps[1]))
+        key = ("walk", first, stop)
+        if key not in self._tables:
+            rows = []
+            if stop > first:
+                for t in range(int(self.map_tree[first]), int(self.map_tree[stop - 1]) + 1):
+                    f, s = int(self.tree_first_map[t]), int(self.tree_map_count[t])
+                    lo, hi = max(first, f) - f, min(stop, f + s) - f
+                    rows.append((self.node_base[t], self.leaf_base[t] + lo,
+                                 self.internal_count[t], s, hi - lo))
+            table = np.asarray(rows, dtype=np.uint32).reshape(-1)
+            self._tables[key] = (mi.UInt32(table if table.size else np.zeros(5, np.uint32)),
+                                 len(rows))
+        return self._tables[key]
 
     # ---------------------------------------------------------------- host views
 
@@ -368,7 +445,10 @@ def _build_groups(p, ids, counts, starts, depth, node_base, nodes):
     return order
 
 
-def _check_input(p, ids, map_count, leaf_size):
+def _check_input(p, ids, map_count, leaf_size, layout):
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {', '.join(repr(v) for v in LAYOUTS)}, got "
+                         f"{layout!r}")
     n_points = dr.width(p)
     if dr.width(ids) != n_points:
         raise ValueError(f"map_ids has {dr.width(ids)} entries for {n_points} points")
@@ -383,8 +463,9 @@ def _check_input(p, ids, map_count, leaf_size):
 
 
 def build_forest(points, map_ids=None, map_count: int | None = None,
-                 leaf_size: int = LEAF_SIZE, payload=None) -> Forest:
-    """Build one balanced kd-tree per photon map, on the device.
+                 leaf_size: int = LEAF_SIZE, payload=None, layout: str = "separate") -> Forest:
+    """Build the kd-trees of the photon maps, on the device: one balanced tree per map, or
+    with ``layout="shared"`` one per group of maps that share its split planes.
 
     Parameters
     ----------
@@ -399,6 +480,13 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
         The most photons a leaf holds (>= 1).
     payload : mi.UInt32, optional
         A 32-bit value per photon, kept beside its position in :attr:`Forest.records`.
+    layout : str
+        "separate" (default): each map's tree is built from its photons alone, the paper's
+        maps. "shared": consecutive maps of at most :data:`GROUP_PHOTONS` photons together
+        share one tree, built over all their photons, whose leaves hold every map's photons
+        map after map (leaves of at most :func:`shared_leaf_size` photons); each map's
+        estimate is the same as with its own tree, and a query over many maps descends
+        once per group instead of once per map.
 
     Returns
     -------
@@ -407,8 +495,8 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     Raises
     ------
     ValueError
-        Mismatched sizes, map ids out of range, a leaf size below 1, or a position that is
-        not finite.
+        Mismatched sizes, map ids out of range, a leaf size below 1, an unknown layout, or a
+        position that is not finite.
 
     Notes
     -----
@@ -433,7 +521,7 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
         ids = mi.UInt32(host.astype(np.uint32))
     if map_count is None:
         map_count = int(dr.max(ids)[0]) + 1 if n_points else 1
-    _check_input(p, ids, map_count, leaf_size)
+    _check_input(p, ids, map_count, leaf_size, layout)
     counts = np.zeros(map_count, dtype=np.int64)
     if n_points:
         largest = int(dr.max(ids)[0])
@@ -442,27 +530,79 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
         tally = dr.zeros(mi.UInt32, map_count)
         dr.scatter_reduce(dr.ReduceOp.Add, tally, 1, ids)
         counts = tally.numpy().astype(np.int64)
-    starts = np.concatenate(([0], np.cumsum(counts)))[:-1]
-    depth = tree_depth(counts, leaf_size)
+    first_map, maps_in_tree = _trees(counts, layout)
+    map_tree = np.repeat(np.arange(first_map.shape[0]), maps_in_tree)
+    tree_counts = np.add.reduceat(counts, first_map) if counts.size else counts
+    starts = np.concatenate(([0], np.cumsum(tree_counts)))[:-1]
+    depth = tree_depth(tree_counts, shared_leaf_size(leaf_size, maps_in_tree))
     internal, leaves = (1 << depth) - 1, 1 << depth
+    entries = leaves * maps_in_tree + 1          # leaf-table entries per tree
     node_base = np.concatenate(([0], np.cumsum(internal)))[:-1]
-    leaf_base = np.concatenate(([0], np.cumsum(leaves + 1)))[:-1]
-    # One unused node when every map is a single leaf: no empty arrays.
+    leaf_base = np.concatenate(([0], np.cumsum(entries)))[:-1]
+    # One unused node when every tree is a single leaf: no empty arrays.
     nodes = dr.zeros(mi.Float, 2 * max(1, int(internal.sum())))
 
+    tree_ids = ids if layout == "separate" else dr.gather(mi.UInt32, mi.UInt32(
+        map_tree.astype(np.uint32)), ids)
     if n_points:
-        order = _build_groups(p, ids, counts, starts, depth, node_base, nodes)
+        order = _build_groups(p, tree_ids, tree_counts, starts, depth, node_base, nodes)
     else:
         order = dr.zeros(mi.UInt32, 0)
+    del tree_ids
+    if np.any(maps_in_tree > 1) and n_points:
+        order, leaf_start = _shared_leaf_table(order, ids, tree_counts, starts, leaves,
+                                               first_map, maps_in_tree, leaf_base,
+                                               int(entries.sum()))
+    else:
+        # Leaf j of tree t starts at floor(j c / L); one closing entry per tree.
+        t = np.repeat(np.arange(tree_counts.shape[0]), leaves + 1)
+        j = np.arange(int((leaves + 1).sum())) - np.repeat(leaf_base, leaves + 1)
+        leaf_start = mi.UInt32((starts[t] + (j * tree_counts[t]) // leaves[t]).astype(np.uint32))
     records = _records(p, order, payload)
-
-    # Leaf table: leaf j of map m starts at floor(j c / L); one closing entry per map.
-    m = np.repeat(np.arange(map_count), leaves + 1)
-    j = np.arange(int((leaves + 1).sum())) - np.repeat(leaf_base, leaves + 1)
-    leaf_start = (starts[m] + (j * counts[m]) // leaves[m]).astype(np.uint32)
-    return Forest(records=records, nodes=nodes, leaf_table=mi.UInt32(leaf_start),
+    return Forest(records=records, nodes=nodes, leaf_table=leaf_start,
                   tree_order=order, node_base=node_base, leaf_base=leaf_base,
-                  internal_count=internal, photon_count=counts, leaf_size=int(leaf_size))
+                  internal_count=internal, photon_count=counts, leaf_size=int(leaf_size),
+                  tree_first_map=first_map, tree_map_count=maps_in_tree, map_tree=map_tree,
+                  layout=layout)
+
+
+def _trees(counts: np.ndarray, layout: str):
+    """(first map, maps) of every tree: one per map, or groups of consecutive maps of at
+    most :data:`GROUP_PHOTONS` photons (a larger map alone) that share their split planes."""
+    n = counts.shape[0]
+    if layout == "separate" or n == 0:
+        return np.arange(n, dtype=np.int64), np.ones(n, dtype=np.int64)
+    groups = _groups(counts)
+    return (np.array([g[0] for g in groups], dtype=np.int64),
+            np.array([len(g) for g in groups], dtype=np.int64))
+
+
+def _shared_leaf_table(order, ids, tree_counts, starts, leaves, first_map, maps_in_tree,
+                       leaf_base, entries):
+    """Put every leaf's photons map after map and make the leaf table of the trees (see
+    :class:`Forest`). Position x of tree t lies in leaf j = floor(((x + 1) L - 1) / c) (leaf j
+    covers [floor(j c / L), floor((j + 1) c / L))); its photon's entry is leaf_base[t] +
+    j s + (map - first map), and a stable sort by entry orders each leaf by map. An entry's
+    first photon is the count of photons of the entries before it (a closing entry has
+    none)."""
+    n = dr.width(order)
+    pos = dr.arange(mi.UInt32, n)
+    t_of = np.repeat(np.arange(tree_counts.shape[0]), tree_counts).astype(np.uint32)
+    tree = mi.UInt32(t_of)
+
+    def per_tree(values):
+        return dr.gather(mi.UInt32, mi.UInt32(np.asarray(values).astype(np.uint32)), tree)
+    x = mi.UInt64(pos - per_tree(starts))
+    c = mi.UInt64(per_tree(tree_counts))
+    leaf = mi.UInt32(((x + 1) * mi.UInt64(per_tree(leaves)) - 1) // c)
+    local = dr.gather(mi.UInt32, ids, order) - per_tree(first_map)
+    entry = per_tree(leaf_base) + leaf * per_tree(maps_in_tree) + local
+    perm = dr.argsort(entry)
+    order = dr.gather(mi.UInt32, order, perm)
+    count = dr.zeros(mi.UInt32, entries)
+    dr.scatter_reduce(dr.ReduceOp.Add, count, 1, entry)
+    dr.eval(order, count)
+    return order, dr.prefix_sum(count)
 
 
 def _records(p, order, payload):

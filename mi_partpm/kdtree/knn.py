@@ -13,8 +13,8 @@ import mitsuba as mi
 import numpy as np
 
 from .forest import Forest
-from .radius import (QueryStats, coordinate, map_tables, order_queries, permute,
-                     photon_position, split_of, unpermute)
+from .radius import (QueryStats, coordinate, leaf_run, order_queries, permute,
+                     photon_position, split_of, tree_row, unpermute)
 
 __all__ = ["knn_query", "KnnResult", "knn_neighbours"]
 
@@ -97,7 +97,6 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     """
     if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
         raise ValueError(f"k must be an integer >= 1, got {k!r}")
-    first, stop = (0, forest.map_count) if maps is None else maps
     result_type = mi.Float if result_type is None else result_type
     width = dr.width(p)
     if max_radius is None:
@@ -120,8 +119,9 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     if not isinstance(r2max, float):
         r2max = permute(dr.zeros(mi.Float, width) + r2max, perm, width)
     res, d2, idx = _knn_walk(forest, permute(p, perm, width), int(k), contribution,
-                             result_type, r2max, permute(active, perm, width), first, stop,
-                             neighbours, accept, permute(state, perm, width))
+                             result_type, r2max, permute(active, perm, width),
+                             forest.walk_table(maps), neighbours, accept,
+                             permute(state, perm, width))
     res = KnnResult(*[unpermute(v, perm, width) for v in (res.total, res.radius2, res.count)],
                     QueryStats(*[unpermute(v, perm, width) for v in (
                         res.stats.nodes_visited, res.stats.photons_tested,
@@ -168,8 +168,8 @@ def _heap_insert(heap_d, heap_i, count, ku, d2, i, push, replace):
 
 
 @dr.syntax
-def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, stop,
-              neighbours, accept, state):
+def _knn_walk(forest, p, k, contribution, result_type, r2max, active, walk, neighbours,
+              accept, state):
     """Near-first while-while walk with a bounded max-heap per lane (see
     :func:`knn_query`). Returns (KnnResult with stats, dist2 list, index list)."""
     width = dr.width(p)
@@ -178,10 +178,11 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
     r2 = dr.zeros(mi.Float, width) + r2max
     count = dr.zeros(mi.UInt32, width)
     ku = mi.UInt32(k)
-    m = dr.zeros(mi.UInt32, width) + dr.opaque(mi.UInt32, first)
-    stop_u = dr.opaque(mi.UInt32, stop)
-    active &= m < stop_u
-    node_base, leaf_base, n_int = map_tables(forest, m, active)
+    table, trees = walk
+    t = dr.zeros(mi.UInt32, width)
+    stop_u = dr.opaque(mi.UInt32, trees)
+    active &= t < stop_u
+    node_base, leaf_base, n_int, stride, span = tree_row(table, t, active)
     node = dr.zeros(mi.UInt32, width)
     going_down = dr.full(mi.Bool, True, width)
     nodes_visited = dr.zeros(mi.UInt32, width)
@@ -202,9 +203,9 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
                     at_leaf = mi.Bool(True)
                     searching = mi.Bool(False)
             elif node == 0:
-                m += 1
-                if m < stop_u:
-                    node_base, leaf_base, n_int = map_tables(forest, m)
+                t += 1
+                if t < stop_u:
+                    node_base, leaf_base, n_int, stride, span = tree_row(table, t)
                     going_down = mi.Bool(True)
                 else:
                     searching = mi.Bool(False)
@@ -220,9 +221,7 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, first, sto
                 going_down = to_far
 
         # Test the leaf's photons: keep one if it beats the heap's worst (or there is room).
-        leaf = leaf_base + (node - n_int)
-        i = dr.gather(mi.UInt32, forest.leaf_table, leaf, at_leaf)
-        end = dr.select(at_leaf, dr.gather(mi.UInt32, forest.leaf_table, leaf + 1, at_leaf), i)
+        i, end = leaf_run(forest, leaf_base, stride, span, n_int, node, at_leaf)
         while dr.hint(i < end, label="partpm_knn_scan"):
             photons_tested += 1
             d2 = dr.squared_norm(photon_position(forest, i) - p)

@@ -1,8 +1,10 @@
 """The fixed-radius query over a forest: the walk behind eq. (2)'s density estimate.
 
-One lane per query point walks the implicit trees of the maps it is asked for, one map after
-the other, with no per-lane stack: it descends into every child whose half-space the query
-ball reaches and climbs back through parents. The walk is "while-while": an inner loop moves
+One lane per query point walks the implicit trees of the maps it is asked for, one tree after
+the other (a tree that several maps share is walked once, and the runs of those maps in each
+leaf it reaches are scanned in turn: :class:`~.forest.Forest`), with no per-lane stack: it
+descends into every child whose half-space the query ball reaches and climbs back through
+parents. The walk is "while-while": an inner loop moves
 to the next leaf the ball reaches, a second inner loop tests that leaf's photons, so the lanes
 of a SIMD packet test photons together instead of interleaving node steps and photon tests.
 Every photon within the radius is passed to a callback with its squared distance, and the
@@ -138,7 +140,6 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     -------
     total, or (total, QueryStats), per query in the caller's order.
     """
-    first, stop = (0, forest.map_count) if maps is None else maps
     result_type = mi.Float if result_type is None else result_type
     width = dr.width(p)
     if forest.size == 0 or width == 0:
@@ -151,8 +152,9 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
     r = dr.opaque(mi.Float, r) if isinstance(r, (int, float)) else mi.Float(r)
     total, stats = _walk(forest, permute(p, perm, width), permute(r, perm, width),
-                         contribution, result_type, permute(active, perm, width), first, stop,
-                         with_stats, accept, permute(state, perm, width))
+                         contribution, result_type, permute(active, perm, width),
+                         forest.walk_table(maps), with_stats, accept,
+                         permute(state, perm, width))
     total = unpermute(total, perm, width)
     if not with_stats:
         return total
@@ -160,12 +162,18 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
         stats.nodes_visited, stats.photons_tested, stats.photons_found)])
 
 
-def map_tables(forest: Forest, m, active=True):
-    """(node base, leaf base, internal-node count) of map ``m`` per lane."""
-    t = forest.tables()
-    return (dr.gather(mi.UInt32, t["node_base"], m, active),
-            dr.gather(mi.UInt32, t["leaf_base"], m, active),
-            dr.gather(mi.UInt32, t["internal_count"], m, active))
+def tree_row(table, k, active=True):
+    """Row ``k`` of a walk table (:meth:`~.forest.Forest.walk_table`), per lane: node base,
+    leaf-table base, internal-node count, leaf-table entries per leaf, entries read."""
+    return tuple(dr.gather(mi.UInt32, table, 5 * k + c, active) for c in range(5))
+
+
+def leaf_run(forest: Forest, leaf_base, stride, span, n_int, node, active=True):
+    """[first, end) of the photons the walk scans in leaf ``node`` (its maps' runs)."""
+    entry = leaf_base + (node - n_int) * stride
+    i = dr.gather(mi.UInt32, forest.leaf_table, entry, active)
+    end = dr.select(active, dr.gather(mi.UInt32, forest.leaf_table, entry + span, active), i)
+    return i, end
 
 
 def split_of(forest: Forest, node, active=True):
@@ -175,16 +183,17 @@ def split_of(forest: Forest, node, active=True):
 
 
 @dr.syntax
-def _walk(forest, p, r, contribution, result_type, active, first, stop, with_stats, accept,
-          state):
-    """The while-while walk behind :func:`radius_query`, one lane per query point."""
+def _walk(forest, p, r, contribution, result_type, active, walk, with_stats, accept, state):
+    """The while-while walk behind :func:`radius_query`, one lane per query point, over the
+    trees of the walk table ``walk`` = (array, trees)."""
     width = dr.width(p)
     r2 = r * r
     total = dr.zeros(result_type, width)
-    m = dr.zeros(mi.UInt32, width) + dr.opaque(mi.UInt32, first)
-    stop_u = dr.opaque(mi.UInt32, stop)
-    active &= m < stop_u
-    node_base, leaf_base, n_int = map_tables(forest, m, active)
+    table, trees = walk
+    k = dr.zeros(mi.UInt32, width)
+    stop_u = dr.opaque(mi.UInt32, trees)
+    active &= k < stop_u
+    node_base, leaf_base, n_int, stride, span = tree_row(table, k, active)
     node = dr.zeros(mi.UInt32, width)
     going_down = dr.full(mi.Bool, True, width)
     nodes_visited = dr.zeros(mi.UInt32, width)
@@ -207,10 +216,10 @@ def _walk(forest, p, r, contribution, result_type, active, first, stop, with_sta
                     at_leaf = mi.Bool(True)
                     searching = mi.Bool(False)
             elif node == 0:
-                # This map is done: the root of the next one, or the end.
-                m += 1
-                if m < stop_u:
-                    node_base, leaf_base, n_int = map_tables(forest, m)
+                # This tree is done: the root of the next one, or the end.
+                k += 1
+                if k < stop_u:
+                    node_base, leaf_base, n_int, stride, span = tree_row(table, k)
                     going_down = mi.Bool(True)
                 else:
                     searching = mi.Bool(False)
@@ -225,10 +234,8 @@ def _walk(forest, p, r, contribution, result_type, active, first, stop, with_sta
                 node = dr.select(to_sibling, node + 1, parent)
                 going_down = to_sibling
 
-        # Test the leaf's photons.
-        leaf = leaf_base + (node - n_int)
-        i = dr.gather(mi.UInt32, forest.leaf_table, leaf, at_leaf)
-        end = dr.select(at_leaf, dr.gather(mi.UInt32, forest.leaf_table, leaf + 1, at_leaf), i)
+        # Test the leaf's photons (of the maps asked for).
+        i, end = leaf_run(forest, leaf_base, stride, span, n_int, node, at_leaf)
         while dr.hint(i < end, label="partpm_radius_scan"):
             for u in range(SCAN_UNROLL):
                 j = i + u
