@@ -275,8 +275,11 @@ def morton_order(points) -> np.ndarray:
 
 
 def _presort(coord, map_ids, map_count):
-    """Per axis, the permutation that sorts the points by map, then by that coordinate
-    (two stable radix sorts on the device)."""
+    """The three sorted orders of the points, by map then by x, y and z (two stable radix
+    sorts each, on the device), as ``(ids, rel)``: ``ids`` the points in the x order, and
+    ``rel[1]``, ``rel[2]`` the y and z orders as positions in the x order (``rel[0]`` is
+    None: the x order itself). Positions rather than point ids keep the partition's reads
+    and writes inside a node's run once nodes are small."""
     orders = []
     for axis in range(3):
         order = dr.argsort(coord[axis])
@@ -285,74 +288,97 @@ def _presort(coord, map_ids, map_count):
                               dr.argsort(dr.gather(mi.UInt32, map_ids, order)))
         dr.eval(order)
         orders.append(order)
-    return orders
+    n = dr.width(orders[0])
+    where = dr.empty(mi.UInt32, n)               # each point's position in the x order
+    dr.scatter(where, dr.arange(mi.UInt32, n), orders[0])
+    rel = [None] + [dr.gather(mi.UInt32, where, orders[a]) for a in (1, 2)]
+    dr.eval(rel[1:])
+    return orders[0], rel
 
 
-def _split_level(coord, orders, first, stop, median):
+def _point_at(ids, rel, a, pos):
+    """The point at position ``pos`` of the order along axis ``a``."""
+    return dr.gather(mi.UInt32, ids, pos if a == 0 else dr.gather(mi.UInt32, rel[a], pos))
+
+
+def _split_level(coord, ids, rel, first, stop, median):
     """Split axis and value of each node of a level, from its runs ``[first, stop)`` in the
     three sorted orders: the longest extent, and the coordinate of the ``median`` entry."""
-    extent = [dr.gather(mi.Float, coord[a], dr.gather(mi.UInt32, orders[a], stop - 1))
-              - dr.gather(mi.Float, coord[a], dr.gather(mi.UInt32, orders[a], first))
-              for a in range(3)]
+    def at(a, pos):
+        return dr.gather(mi.Float, coord[a], _point_at(ids, rel, a, pos))
+    extent = [at(a, stop - 1) - at(a, first) for a in range(3)]
     axis = mi.UInt32(dr.select((extent[0] >= extent[1]) & (extent[0] >= extent[2]), 0,
                                dr.select(extent[1] >= extent[2], 1, 2)))
-    value = [dr.gather(mi.Float, coord[a], dr.gather(mi.UInt32, orders[a], median))
-             for a in range(3)]
+    value = [at(a, median) for a in range(3)]
     split = dr.select(axis == 0, value[0], dr.select(axis == 1, value[1], value[2]))
     dr.eval(axis, split)
     return axis, split
 
 
-def _partition_level(orders, node_first, node_median, node_axis, level_node, in_level,
-                     position):
+def _partition_level(ids, rel, node_first, node_median, node_axis, level_node, in_level,
+                     position, last=False):
     """Stable partition of the three sorted orders into every node's two halves.
 
     ``level_node`` is each position's node in the level's node arrays; a position right of
-    its node's median goes right. Each order is partitioned with one prefix sum and one
-    scatter. Returns the new orders and, per position, 1 where it went right."""
+    its node's median (in the order of the node's axis) goes right. Every point's side is
+    written at its position in the x order (one scatter); each order is then partitioned
+    with one prefix sum and one scatter, the y and z orders' entries renamed to the points'
+    new positions in the x order (not after the ``last`` level: only the tree order is left
+    to find). Returns the new ``(ids, rel)`` and, per position, 1 where it went right."""
     n = dr.width(position)
     first = dr.gather(mi.UInt32, node_first, level_node, in_level)
     median = dr.gather(mi.UInt32, node_median, level_node, in_level)
     axis = dr.gather(mi.UInt32, node_axis, level_node, in_level)
     right_of_median = mi.UInt32(position >= median)
-    goes_right = dr.zeros(mi.UInt32, n)          # per point: its side along its node's axis
-    for a in range(3):
-        dr.scatter(goes_right, right_of_median, orders[a], in_level & (axis == a))
-    dr.eval(goes_right, first, median, in_level)
-    new = []
-    for a in range(3):
-        right = dr.gather(mi.UInt32, goes_right, orders[a])
+    side = dr.zeros(mi.UInt32, n)                # per x-order position: its point's side
+    dr.scatter(side, right_of_median,
+               dr.select(axis == 0, position, dr.select(axis == 1, rel[1], rel[2])), in_level)
+    dr.eval(side, first, median, in_level)
+
+    def targets(right):
+        """Where each position of an order goes: right-goers after the median, in order."""
         rights_before = dr.prefix_sum(right)     # exclusive: right-goers before each position
         dr.eval(rights_before)
         rank_right = rights_before - dr.gather(mi.UInt32, rights_before, first)
         rank_left = (position - first) - rank_right
-        target = dr.select(in_level, dr.select(right == 1, median + rank_right,
-                                               first + rank_left), position)
+        return dr.select(in_level, dr.select(right == 1, median + rank_right,
+                                             first + rank_left), position)
+    to = targets(side)
+    dr.eval(to)
+    new_ids = dr.empty(mi.UInt32, n)
+    dr.scatter(new_ids, ids, to)
+    new_rel = [None]
+    for a in () if last else (1, 2):
+        target = targets(dr.gather(mi.UInt32, side, rel[a]))
         out = dr.empty(mi.UInt32, n)
-        dr.scatter(out, orders[a], target)
-        orders[a] = None                          # free the old order before the next one
-        new.append(out)
-    dr.eval(new)
-    return new, right_of_median
+        dr.scatter(out, dr.gather(mi.UInt32, to, rel[a]), target)
+        dr.eval(out)
+        rel[a] = None                             # free the old order before the next one
+        new_rel.append(out)
+    dr.eval(new_ids)
+    return new_ids, new_rel, right_of_median
 
 
 def _partition_levels(coord, map_ids, counts, starts, depth, node_base, nodes):
     """Split every node of every level; fill ``nodes``; return the tree order (device).
 
-    Presorted build: for each axis, a permutation of the points sorted along that axis within
-    every map (:func:`_presort`). A node's bounds are then the first and last entries of its
-    runs and its median the middle entry of the run of its longest axis, found by one small
-    kernel over the level's nodes (:func:`_split_level`). Then every position looks up its
-    node (it tracks its node's index within its map's level, which becomes 2k or 2k+1 at the
-    next level) and the three permutations are partitioned stably into the left and right
-    halves (:func:`_partition_level`): a handful of whole-array kernels per level, over all
-    maps at once, with no division and no sort after the first.
+    Presorted build: for each axis, the points sorted along that axis within every map, the
+    y and z orders held as positions in the x order (:func:`_presort`). A node's bounds are
+    then the first and last entries of its runs and its median the middle entry of the run
+    of its longest axis, found by one small kernel over the level's nodes
+    (:func:`_split_level`). Then every position looks up its node (it tracks its node's index
+    within its map's level, which becomes 2k or 2k+1 at the next level) and the three orders
+    are partitioned stably into the left and right halves (:func:`_partition_level`): a
+    handful of whole-array kernels per level, over all maps at once, with no division and no
+    sort after the first; below the top levels their reads and writes stay inside a node's
+    run (3 x 10^7 photons on 2 cores: 19 s, against 25-27 s when every order held point
+    ids).
     """
     n = dr.width(coord[0])
     n_maps = counts.shape[0]
-    orders = _presort(coord, map_ids, n_maps)
+    ids, rel = _presort(coord, map_ids, n_maps)
     position = dr.arange(mi.UInt32, n)
-    point_map = dr.gather(mi.UInt32, map_ids, orders[0])   # map of each position
+    point_map = dr.gather(mi.UInt32, map_ids, ids)   # map of each position
     node_in_map = dr.zeros(mi.UInt32, n)         # each position's node within its map's level
     for level in range(int(depth.max(initial=0))):
         per_map = 1 << level
@@ -365,7 +391,7 @@ def _partition_levels(coord, map_ids, counts, starts, depth, node_base, nodes):
         stop = starts[node_map] + ((node_index + 1) * c) // per_map
         median = starts[node_map] + ((2 * node_index + 1) * c) // (2 * per_map)
         first, stop, median = (mi.UInt32(v.astype(np.uint32)) for v in (first, stop, median))
-        axis, split = _split_level(coord, orders, first, stop, median)
+        axis, split = _split_level(coord, ids, rel, first, stop, median)
         node = mi.UInt32((node_base[node_map] + (per_map - 1) + node_index).astype(np.uint32))
         dr.scatter(nodes, split, 2 * node)
         dr.scatter(nodes, dr.reinterpret_array(mi.Float, axis), 2 * node + 1)
@@ -376,11 +402,12 @@ def _partition_levels(coord, map_ids, counts, starts, depth, node_base, nodes):
         offset = dr.gather(mi.UInt32, mi.UInt32(level_offset), point_map)
         in_level = offset != 0xFFFFFFFF
         level_node = dr.select(in_level, offset + node_in_map, 0)
-        orders, went_right = _partition_level(orders, first, median, axis, level_node,
-                                              in_level, position)
+        last = level + 1 == int(depth.max(initial=0))
+        ids, rel, went_right = _partition_level(ids, rel, first, median, axis, level_node,
+                                                in_level, position, last)
         node_in_map = dr.select(in_level, 2 * node_in_map + went_right, node_in_map)
         dr.eval(node_in_map, nodes)
-    return orders[0]
+    return ids
 
 
 #: Photons built together at most: maps are built in groups of consecutive maps of about
