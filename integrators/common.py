@@ -5,7 +5,8 @@ pass):
 
 1. trace: the photons of the maps this process owns, from the streams of (seed, render seed,
    pass, map) (:mod:`mi_partpm.trace`);
-2. build: one kd-tree per map (:mod:`mi_partpm.photonmap`);
+2. build: the maps' kd-trees, groups of maps sharing split planes
+   (:mod:`mi_partpm.photonmap`);
 3. eye: one eye path per pixel sample, through delta bounces to its visible points
    (:mod:`mi_partpm.eyepath`, the camera of :mod:`mi_partpm.camera`);
 4. estimate: the density estimate at every visible point, in Morton order

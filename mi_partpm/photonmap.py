@@ -26,7 +26,8 @@ class PhotonMaps:
     Attributes
     ----------
     forest : Forest
-        One balanced kd-tree per map; each photon's record there holds its position and, as
+        The maps' balanced kd-trees (one per map, or shared by groups of maps: see
+        :func:`build_photon_maps`); each photon's record there holds its position and, as
         payload, its incident direction (octahedral code, 2 x 16 bits): one 16-byte load.
     power : mi.Spectrum
         Every photon's power (float32), in tree order.
@@ -82,7 +83,7 @@ class PhotonMaps:
     @property
     def nbytes(self) -> int:
         """Bytes of the photon records plus the trees, over all maps."""
-        return int(self.map_bytes.sum())
+        return self.photon_count * self.bytes_per_photon + self.forest.nbytes
 
 
 def record_bytes(with_bounce: bool = False) -> int:

@@ -258,20 +258,25 @@ class _Run:
         # sort is stable), so that every run hands the same arrays to the build.
         if stored == 0:
             return empty_photons(self.photon_count, 0), int(segments[0])
+        # Each buffer is freed once read: the batch's peak is its slots and the photons in
+        # photon order (one packet gather cannot read half a slot).
         slots, bounces = out
+        out.clear()
         photon_of = dr.reinterpret_array(mi.UInt32, dr.gather(
             mi.Float, slots, SLOT_FLOATS * dr.arange(mi.UInt32, stored) + SLOT_FLOATS - 1))
         keep = dr.argsort(photon_of)
         del photon_of
+        bounce = dr.gather(mi.UInt32, bounces, keep)
+        dr.eval(bounce)
+        del bounces
         rec = dr.gather(_array_xf(), slots, keep, shape=(SLOT_FLOATS, stored))
         dr.eval(rec)
-        del slots
+        del slots, keep
         channels = _channels()
         flux = mi.Spectrum(*[rec[4 + c] for c in range(channels)])
         photon = dr.reinterpret_array(mi.UInt32, rec[SLOT_FLOATS - 1])
         # A photon's map is its lane's.
         maps = dr.gather(mi.UInt32, mi.UInt32(lane_map), photon)
-        bounce = dr.gather(mi.UInt32, bounces, keep)
         photons = Photons(mi.Point3f(rec[0], rec[1], rec[2]),
                           dr.reinterpret_array(mi.UInt32, rec[3]), flux, maps, bounce,
                           emitted=self.photon_count, map_count=0)

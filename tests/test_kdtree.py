@@ -104,17 +104,54 @@ def test_shared_layout_keeps_every_map_its_own_photons(monkeypatch):
         assert leaf_sizes.max() <= shared_leaf_size(8, s)
     queries = rng.random((400, 3)).astype(np.float32)
     q = mi.Point3f(*[queries[:, k] for k in range(3)])
-    w = mi.Float(np.ones(len(pts), np.float32))
+    weights = rng.random(len(pts)).astype(np.float32)
+    w = mi.Float(weights[forest.order])                 # in tree order, as the walk reads
     r = 0.08
     d2 = ((queries[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
-    for maps in [(m, m + 1) for m in range(n)] + [(0, n), (2, 6), (5, 7)]:
-        _, stats = radius_query(forest, q, r, lambda i, dd, a, st: dr.gather(mi.Float, w, i, a),
-                                maps=maps, with_stats=True)
-        inside = (d2 < r * r * (1 - 1e-5)) & ((ids >= maps[0]) & (ids < maps[1]))[None]
-        edge = (d2 <= r * r * (1 + 1e-5)) & ((ids >= maps[0]) & (ids < maps[1]))[None]
-        found = stats.photons_found.numpy()
+    # Every map alone, all maps, ranges that start or end inside a group or cross groups.
+    for maps in [(m, m + 1) for m in range(n)] + [(0, n), (1, 4), (2, 6), (3, 7), (5, 7)]:
+        total, stats = radius_query(forest, q, r, lambda i, dd, a, st: dr.gather(
+            mi.Float, w, i, a), maps=maps, with_stats=True)
+        in_range = ((ids >= maps[0]) & (ids < maps[1]))[None]
+        inside = (d2 < r * r * (1 - 1e-5)) & in_range
+        edge = (d2 <= r * r * (1 + 1e-5)) & in_range
+        found, sums = stats.photons_found.numpy(), total.numpy()
         assert np.all(found >= inside.sum(1)) and np.all(found <= edge.sum(1)), maps
+        lo, hi = inside @ weights, edge @ weights
+        assert np.all(sums >= lo - 1e-4 * hi - 1e-6) and np.all(sums <= hi + 1e-4 * hi + 1e-6)
         assert found.sum() > 0
+    # An empty range finds nothing; a range outside the maps is an error, before any walk.
+    _, stats = radius_query(forest, q, r, lambda i, dd, a, st: mi.Float(1.0), maps=(3, 3),
+                            with_stats=True)
+    assert stats.photons_found.numpy().sum() == 0
+    with pytest.raises(ValueError, match=r"0 <= first <= stop <= map_count = 7, got \(0, 8\)"):
+        radius_query(forest, q, r, lambda i, dd, a, st: mi.Float(1.0), maps=(0, 8))
+
+
+@pytest.mark.parametrize("layout", ["separate", "shared"])
+def test_maps_of_different_depths_and_empty_maps_in_one_tree(layout):
+    """One build of maps whose trees end at different levels (1,000 and 50 photons in leaves
+    of 8), an empty map and a map that is a single leaf, against scipy, map by map and all
+    together; with no photon at all, the forest is empty and every query finds nothing."""
+    rng = np.random.default_rng(14)
+    sizes = [1000, 0, 50, 5]
+    ids = np.repeat(np.arange(4), sizes)
+    pts = rng.random((ids.size, 3))
+    queries = rng.random((300, 3))
+    forest = build_forest(pts, ids, 4, leaf_size=8, layout=layout)
+    assert [forest.depth(m) for m in range(4)] == ([7, 0, 3, 0] if layout == "separate"
+                                                   else [7] * 4)
+    _check_against_scipy(pts, queries, 0.15, ids, 4, layout)
+    for m in range(4):
+        sel = ids == m
+        _, found, _ = _query_sums(forest, np.ones(ids.size), queries, 0.15, maps=(m, m + 1))
+        ref = cKDTree(pts[sel]).query_ball_point(queries, 0.15 * (1 - 1e-5),
+                                                 return_length=True) if sel.any() else 0
+        assert np.all(found >= ref) and (sel.any() or found.sum() == 0), m
+    empty = build_forest(np.zeros((0, 3)), np.zeros(0, int), 3, layout=layout)
+    assert empty.size == 0 and empty.nbytes > 0
+    _, found, _ = _query_sums(empty, np.ones(0), queries[:5], 0.5)
+    assert found.sum() == 0
 
 
 def test_build_forest_rejects_an_unknown_layout():

@@ -11,11 +11,12 @@ A *forest* holds the n partial photon maps of eq. (2) of the paper. It has two l
   map reads only its photons), but a walk over several maps descends once and scans their
   runs of a leaf in turn, instead of descending every map's tree from its root.
 
-Every tree is balanced and implicit: node ``j`` of a map has children ``2j+1`` and ``2j+2``; nodes
-``0 .. I-1`` are internal (``I = 2**D - 1``) and nodes ``I .. 2I`` are the ``2**D`` leaves,
-each holding a contiguous run of at most ``leaf_size`` photons. A node at level ``d`` covering
-``c`` photons is split at their median along the longest axis of the node's bounding box
-(paper, section 2.1), so all leaves of a map sit at the same depth.
+Every tree is balanced and implicit: node ``j`` of a tree has children ``2j+1`` and ``2j+2``;
+nodes ``0 .. I-1`` are internal (``I = 2**D - 1``) and nodes ``I .. 2I`` are the ``2**D``
+leaves, each holding a contiguous run of at most ``leaf_size`` photons (a shared tree's:
+:func:`shared_leaf_size`). A node at level ``d`` covering ``c`` photons is split at their
+median along the longest axis of the node's bounding box (paper, section 2.1), so all leaves
+of a tree sit at the same depth.
 
 Everything lives on the device (Dr.Jit arrays of the active variant):
 
@@ -61,7 +62,8 @@ RECORD_FLOATS = 4
 LAYOUTS = ("separate", "shared")
 
 #: A shared tree of s maps has leaves of at most max(leaf_size, SHARED_LEAF_PER_MAP * s)
-#: photons, so its leaf table (one entry per map and leaf) stays under a byte per photon.
+#: photons, so its leaf table (one 4-byte entry per map and leaf) stays under two bytes per
+#: photon (the leaves hold more than half that many photons each).
 SHARED_LEAF_PER_MAP = 4
 
 
@@ -190,25 +192,27 @@ class Forest:
         return int(np.log2(int(self.internal_count[self.map_tree[m]]) + 1))
 
     def walk_table(self, maps=None):
-        """What a walk over maps ``first .. stop-1`` (default all) reads per tree, as one
-        device array of 5 entries per tree it visits: node base, the leaf-table entry of map
-        ``first`` in the tree's leaf 0, internal-node count, entries per leaf (the tree's
-        maps) and how many of them the walk reads (its maps in the range). Map m's run of
-        leaf j is then ``[table[b + j s], table[b + j s + span])``. Returns (array, trees)."""
+        """What a walk over maps ``first .. stop-1`` (default all) reads: ``(table, t0, t1,
+        first, stop)``. ``table`` is the forest's one device array of 5 entries per tree (node
+        base, leaf-table base, internal-node count, entries per leaf s = the tree's maps, its
+        first map f), made once; the walk visits trees ``t0 .. t1-1``, and in each the maps
+        [max(first, f), min(stop, f + s)): their runs of leaf j are one run of the leaf table,
+        from entry ``base + j s + max(first, f) - f`` to the entry ``span`` = their count
+        later. One array for every range: a device array per range, all kept, slowed every
+        later Dr.Jit call down (per-map walks of 128 maps: 11 -> 57 ms each)."""
         first, stop = (0, self.map_count) if maps is None else (int(maps[0]), int(maps[1]))
-        key = ("walk", first, stop)
-        if key not in self._tables:
-            rows = []
-            if stop > first:
-                for t in range(int(self.map_tree[first]), int(self.map_tree[stop - 1]) + 1):
-                    f, s = int(self.tree_first_map[t]), int(self.tree_map_count[t])
-                    lo, hi = max(first, f) - f, min(stop, f + s) - f
-                    rows.append((self.node_base[t], self.leaf_base[t] + lo,
-                                 self.internal_count[t], s, hi - lo))
-            table = np.asarray(rows, dtype=np.uint32).reshape(-1)
-            self._tables[key] = (mi.UInt32(table if table.size else np.zeros(5, np.uint32)),
-                                 len(rows))
-        return self._tables[key]
+        if not 0 <= first <= stop <= self.map_count:
+            raise ValueError(f"maps must be (first, stop) with 0 <= first <= stop <= "
+                             f"map_count = {self.map_count}, got ({first}, {stop})")
+        if "walk" not in self._tables:
+            rows = np.stack([self.node_base, self.leaf_base, self.internal_count,
+                             self.tree_map_count, self.tree_first_map], axis=1)
+            self._tables["walk"] = mi.UInt32(rows.astype(np.uint32).reshape(-1)
+                                              if rows.size else np.zeros(5, np.uint32))
+        if stop == first:
+            return self._tables["walk"], 0, 0, first, stop
+        return (self._tables["walk"], int(self.map_tree[first]),
+                int(self.map_tree[stop - 1]) + 1, first, stop)
 
     # ---------------------------------------------------------------- host views
 
@@ -511,9 +515,10 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
         "separate" (default): each map's tree is built from its photons alone, the paper's
         maps. "shared": consecutive maps of at most :data:`GROUP_PHOTONS` photons together
         share one tree, built over all their photons, whose leaves hold every map's photons
-        map after map (leaves of at most :func:`shared_leaf_size` photons); each map's
-        estimate is the same as with its own tree, and a query over many maps descends
-        once per group instead of once per map.
+        map after map (leaves of at most :func:`shared_leaf_size` photons); a query over one
+        map finds the photons its own tree would give (their sum may differ in the float
+        rounding of its order), and a query over many maps descends once per group instead
+        of once per map.
 
     Returns
     -------
@@ -576,10 +581,11 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     else:
         order = dr.zeros(mi.UInt32, 0)
     del tree_ids
-    if np.any(maps_in_tree > 1) and n_points:
+    if np.any(maps_in_tree > 1):
         order, leaf_start = _shared_leaf_table(order, ids, tree_counts, starts, leaves,
                                                first_map, maps_in_tree, leaf_base,
-                                               int(entries.sum()))
+                                               int(entries.sum())) if n_points else \
+            (order, dr.zeros(mi.UInt32, int(entries.sum())))
     else:
         # Leaf j of tree t starts at floor(j c / L); one closing entry per tree.
         t = np.repeat(np.arange(tree_counts.shape[0]), leaves + 1)

@@ -14,7 +14,7 @@ import numpy as np
 
 from .forest import Forest
 from .radius import (QueryStats, coordinate, leaf_run, order_queries, permute,
-                     photon_position, split_of, tree_row, unpermute)
+                     photon_position, split_of, tree_row, unpermute, walk_start)
 
 __all__ = ["knn_query", "KnnResult", "knn_neighbours"]
 
@@ -178,11 +178,9 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, walk, neig
     r2 = dr.zeros(mi.Float, width) + r2max
     count = dr.zeros(mi.UInt32, width)
     ku = mi.UInt32(k)
-    table, trees = walk
-    t = dr.zeros(mi.UInt32, width)
-    stop_u = dr.opaque(mi.UInt32, trees)
+    table, t, stop_u, bounds = walk_start(walk, width)
     active &= t < stop_u
-    node_base, leaf_base, n_int, stride, span = tree_row(table, t, active)
+    node_base, leaf_base, n_int, stride, span = tree_row(table, t, bounds, active)
     node = dr.zeros(mi.UInt32, width)
     going_down = dr.full(mi.Bool, True, width)
     nodes_visited = dr.zeros(mi.UInt32, width)
@@ -205,7 +203,7 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, walk, neig
             elif node == 0:
                 t += 1
                 if t < stop_u:
-                    node_base, leaf_base, n_int, stride, span = tree_row(table, t)
+                    node_base, leaf_base, n_int, stride, span = tree_row(table, t, bounds)
                     going_down = mi.Bool(True)
                 else:
                     searching = mi.Bool(False)

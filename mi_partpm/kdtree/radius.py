@@ -162,10 +162,24 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
         stats.nodes_visited, stats.photons_tested, stats.photons_found)])
 
 
-def tree_row(table, k, active=True):
-    """Row ``k`` of a walk table (:meth:`~.forest.Forest.walk_table`), per lane: node base,
-    leaf-table base, internal-node count, leaf-table entries per leaf, entries read."""
-    return tuple(dr.gather(mi.UInt32, table, 5 * k + c, active) for c in range(5))
+def tree_row(table, k, bounds, active=True):
+    """What a walk over the maps ``bounds`` = (first, stop) reads of tree ``k`` (per lane; the
+    table of :meth:`~.forest.Forest.walk_table`): node base, the leaf-table entry of its first
+    map in the range in leaf 0, internal-node count, leaf-table entries per leaf, and the
+    number of its maps in the range."""
+    node_base, leaf_base, n_int, stride, f = (dr.gather(mi.UInt32, table, 5 * k + c, active)
+                                              for c in range(5))
+    lo = dr.maximum(bounds[0], f) - f
+    hi = dr.minimum(bounds[1], f + stride) - f
+    return node_base, leaf_base + lo, n_int, stride, hi - lo
+
+
+def walk_start(walk, width):
+    """The walk's first tree per lane, one past its last, and its map bounds (opaque, so
+    every range runs the same kernel)."""
+    table, t0, t1, first, stop = walk
+    return (table, dr.zeros(mi.UInt32, width) + dr.opaque(mi.UInt32, t0),
+            dr.opaque(mi.UInt32, t1), (dr.opaque(mi.UInt32, first), dr.opaque(mi.UInt32, stop)))
 
 
 def leaf_run(forest: Forest, leaf_base, stride, span, n_int, node, active=True):
@@ -185,15 +199,13 @@ def split_of(forest: Forest, node, active=True):
 @dr.syntax
 def _walk(forest, p, r, contribution, result_type, active, walk, with_stats, accept, state):
     """The while-while walk behind :func:`radius_query`, one lane per query point, over the
-    trees of the walk table ``walk`` = (array, trees)."""
+    trees of ``walk`` (:meth:`~.forest.Forest.walk_table`)."""
     width = dr.width(p)
     r2 = r * r
     total = dr.zeros(result_type, width)
-    table, trees = walk
-    k = dr.zeros(mi.UInt32, width)
-    stop_u = dr.opaque(mi.UInt32, trees)
+    table, k, stop_u, bounds = walk_start(walk, width)
     active &= k < stop_u
-    node_base, leaf_base, n_int, stride, span = tree_row(table, k, active)
+    node_base, leaf_base, n_int, stride, span = tree_row(table, k, bounds, active)
     node = dr.zeros(mi.UInt32, width)
     going_down = dr.full(mi.Bool, True, width)
     nodes_visited = dr.zeros(mi.UInt32, width)
@@ -219,7 +231,7 @@ def _walk(forest, p, r, contribution, result_type, active, walk, with_stats, acc
                 # This tree is done: the root of the next one, or the end.
                 k += 1
                 if k < stop_u:
-                    node_base, leaf_base, n_int, stride, span = tree_row(table, k)
+                    node_base, leaf_base, n_int, stride, span = tree_row(table, k, bounds)
                     going_down = mi.Bool(True)
                 else:
                     searching = mi.Bool(False)
