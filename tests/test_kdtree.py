@@ -30,10 +30,11 @@ def _reference(points, weights, queries, r):
     return lo, hi, np.array([len(i) for i in inner]), np.array([len(i) for i in outer])
 
 
-def _check_against_scipy(points, queries, r, map_ids=None, n_maps=None, layout="separate"):
+def _check_against_scipy(points, queries, r, map_ids=None, n_maps=None, layout="separate",
+                         leaf_size=32):
     rng = np.random.default_rng(3)
     weights = rng.random(points.shape[0]).astype(np.float32)
-    forest = build_forest(points, map_ids, n_maps, layout=layout)
+    forest = build_forest(points, map_ids, n_maps, leaf_size=leaf_size, layout=layout)
     sums, found, _ = _query_sums(forest, weights, queries, r)
     lo, hi, n_lo, n_hi = _reference(points, weights, queries, r)
     assert np.all(found >= n_lo) and np.all(found <= n_hi), "photon sets differ from scipy's"
@@ -303,6 +304,32 @@ def test_maps_built_in_groups_give_the_same_forest(monkeypatch, grouped_ids):
         np.testing.assert_array_equal(getattr(grouped, name), getattr(whole, name))
     np.testing.assert_array_equal(grouped.nodes.numpy(), whole.nodes.numpy())
     np.testing.assert_array_equal(grouped.records.numpy(), whole.records.numpy())
+
+
+@pytest.mark.parametrize("count", [1601, 2003])
+def test_shared_trees_beside_a_tree_of_one_map(monkeypatch, count):
+    """A tree of one map beside a shared one whose other maps are empty (a wave that traces
+    maps 0 and 1 of 8): the build must not divide by an empty tree's count, also in the
+    lanes a SIMD packet runs past the end (that stopped the process), and finds scipy's
+    photons."""
+    from mi_partpm.kdtree import forest as forest_module
+    monkeypatch.setattr(forest_module, "GROUP_PHOTONS", 1000)
+    rng = np.random.default_rng(count)
+    pts = rng.random((count, 3)).astype(np.float32)
+    ids = np.sort(rng.integers(0, 2, count))
+    first, maps = forest_module._trees(np.bincount(ids, minlength=8), "shared")
+    assert first.shape[0] >= 2 and maps.max() > 1
+    _check_against_scipy(pts, rng.random((300, 3)), 0.1, ids, 8, "shared")
+
+
+@pytest.mark.parametrize("count", [3, 37, 1000])
+def test_leaves_of_one_photon(count):
+    """With leaves of one photon, a node of one photon is split: its split value must be its
+    own photon's coordinate, not the next node's (a wrong plane would hide the photon)."""
+    rng = np.random.default_rng(count)
+    pts = rng.random((count, 3)).astype(np.float32)
+    _check_against_scipy(pts, np.concatenate([pts, rng.random((200, 3))]), 0.2,
+                         leaf_size=1)
 
 
 @pytest.mark.parametrize("count, leaf", [(1001, 7), (64, 8), (5, 3)])

@@ -34,6 +34,7 @@ whole-array kernels per level and no host sort. The queries over a forest are in
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -307,13 +308,15 @@ def _point_at(ids, rel, a, pos):
 
 def _split_level(coord, ids, rel, first, stop, median):
     """Split axis and value of each node of a level, from its runs ``[first, stop)`` in the
-    three sorted orders: the longest extent, and the coordinate of the ``median`` entry."""
+    three sorted orders: the longest extent, and the coordinate of the ``median`` entry (of
+    the node's last entry when the node holds one photon and its median is its end: its
+    photon goes left and must lie on the plane's left, not under the next node's first)."""
     def at(a, pos):
         return dr.gather(mi.Float, coord[a], _point_at(ids, rel, a, pos))
     extent = [at(a, stop - 1) - at(a, first) for a in range(3)]
     axis = mi.UInt32(dr.select((extent[0] >= extent[1]) & (extent[0] >= extent[2]), 0,
                                dr.select(extent[1] >= extent[2], 1, 2)))
-    value = [at(a, median) for a in range(3)]
+    value = [at(a, dr.minimum(median, stop - 1)) for a in range(3)]
     split = dr.select(axis == 0, value[0], dr.select(axis == 1, value[1], value[2]))
     dr.eval(axis, split)
     return axis, split
@@ -325,9 +328,11 @@ def _partition_level(ids, rel, node_first, node_median, node_axis, level_node, i
 
     ``level_node`` is each position's node in the level's node arrays; a position right of
     its node's median (in the order of the node's axis) goes right. Every point's side is
-    written at its position in the x order (one scatter); each order is then partitioned
-    with one prefix sum and one scatter, the y and z orders' entries renamed to the points'
-    new positions in the x order (not after the ``last`` level: only the tree order is left
+    written at its position in the x order (one scatter) and the x order partitioned with
+    one prefix sum and one scatter. An entry of the y or z order then reads its point's new
+    position in the x order (one gather, the only random access per order): that is both
+    the entry's new name and its side (right of the median or not); one prefix sum and one
+    scatter partition the order (not after the ``last`` level: only the tree order is left
     to find). Returns the new ``(ids, rel)`` and, per position, 1 where it went right."""
     n = dr.width(position)
     first = dr.gather(mi.UInt32, node_first, level_node, in_level)
@@ -349,13 +354,16 @@ def _partition_level(ids, rel, node_first, node_median, node_axis, level_node, i
                                              first + rank_left), position)
     to = targets(side)
     dr.eval(to)
+    del side
     new_ids = dr.empty(mi.UInt32, n)
     dr.scatter(new_ids, ids, to)
     new_rel = [None]
     for a in () if last else (1, 2):
-        target = targets(dr.gather(mi.UInt32, side, rel[a]))
+        renamed = dr.gather(mi.UInt32, to, rel[a])  # the point's new position in the x order
+        dr.eval(renamed)
+        target = targets(mi.UInt32(renamed >= median))
         out = dr.empty(mi.UInt32, n)
-        dr.scatter(out, dr.gather(mi.UInt32, to, rel[a]), target)
+        dr.scatter(out, renamed, target)
         dr.eval(out)
         rel[a] = None                             # free the old order before the next one
         new_rel.append(out)
@@ -626,7 +634,9 @@ def _shared_leaf_table(order, ids, tree_counts, starts, leaves, first_map, maps_
     def per_tree(values):
         return dr.gather(mi.UInt32, mi.UInt32(np.asarray(values).astype(np.uint32)), tree)
     x = mi.UInt64(pos - per_tree(starts))
-    c = mi.UInt64(per_tree(tree_counts))
+    # Never 0, also in the lanes a SIMD packet runs past the end (an integer division by
+    # zero stops the process).
+    c = mi.UInt64(dr.maximum(per_tree(tree_counts), 1))
     leaf = mi.UInt32(((x + 1) * mi.UInt64(per_tree(leaves)) - 1) // c)
     local = dr.gather(mi.UInt32, ids, order) - per_tree(first_map)
     entry = per_tree(leaf_base) + leaf * per_tree(maps_in_tree) + local
@@ -639,16 +649,25 @@ def _shared_leaf_table(order, ids, tree_counts, starts, leaves, first_map, maps_
 
 
 def _records(p, order, payload):
-    """The 4-float records of the photons in tree ``order`` (at least one record)."""
+    """The 4-float records of the photons in tree ``order`` (at least one record): the
+    photons' records are packed in their own order first (sequential packet stores), then
+    read in tree order by one 16-byte packet gather per photon (was one random read per
+    coordinate)."""
     n = dr.width(order)
-    records = dr.zeros(mi.Float, RECORD_FLOATS * max(n, 1))
     if n == 0:
-        return records
-    slot = dr.arange(mi.UInt32, n) * RECORD_FLOATS
-    for a, c in enumerate((p.x, p.y, p.z)):
-        dr.scatter(records, dr.gather(mi.Float, c, order), slot + a)
-    if payload is not None:
-        dr.scatter(records, dr.reinterpret_array(mi.Float, dr.gather(mi.UInt32, payload,
-                                                                     order)), slot + 3)
+        return dr.zeros(mi.Float, RECORD_FLOATS)
+    fourth = dr.zeros(mi.Float, dr.width(p)) if payload is None else \
+        dr.reinterpret_array(mi.Float, payload)
+    packed = dr.empty(mi.Float, RECORD_FLOATS * dr.width(p))
+    dr.scatter(packed, mi.Vector4f(p.x, p.y, p.z, fourth), dr.arange(mi.UInt32, dr.width(p)))
+    dr.eval(packed)
+    rec = dr.gather(_array_xf(), packed, order, shape=(RECORD_FLOATS, n))
+    records = dr.empty(mi.Float, RECORD_FLOATS * n)
+    dr.scatter(records, mi.Vector4f(rec[0], rec[1], rec[2], rec[3]), dr.arange(mi.UInt32, n))
     dr.eval(records)
     return records
+
+
+def _array_xf():
+    """The variant's dynamic-size float array type (of its backend: LLVM or CUDA)."""
+    return getattr(sys.modules[mi.Float.__module__], "ArrayXf")
