@@ -306,28 +306,67 @@ def test_maps_built_in_groups_give_the_same_forest(monkeypatch, grouped_ids):
     np.testing.assert_array_equal(grouped.records.numpy(), whole.records.numpy())
 
 
+_SHARED_BESIDE_ONE = """
+import sys
+import numpy as np, drjit as dr, mitsuba as mi
+mi.set_variant(sys.argv[1])
+from mi_partpm.kdtree import forest
+forest.GROUP_PHOTONS = 1000
+count = int(sys.argv[2])
+rng = np.random.default_rng(count)
+ids = np.sort(rng.integers(0, 2, count))
+first, maps = forest._trees(np.bincount(ids, minlength=8), "shared")
+assert first.shape[0] >= 2 and maps.max() > 1, (first, maps)
+f = forest.build_forest(rng.random((count, 3)).astype(np.float32), ids, 8, layout="shared")
+dr.eval(f.records, f.leaf_table)
+print("built", f.leaf_table.numpy()[-1])
+"""
+
+
 @pytest.mark.parametrize("count", [1601, 2003])
 def test_shared_trees_beside_a_tree_of_one_map(monkeypatch, count):
     """A tree of one map beside a shared one whose other maps are empty (a wave that traces
     maps 0 and 1 of 8): the build must not divide by an empty tree's count, also in the
-    lanes a SIMD packet runs past the end (that stopped the process), and finds scipy's
-    photons."""
+    lanes a SIMD packet runs past the end (that stopped the process with SIGFPE: so the
+    build runs in a process of its own first), and then finds scipy's photons."""
+    import subprocess
+    import sys
+    run = subprocess.run([sys.executable, "-c", _SHARED_BESIDE_ONE, mi.variant(), str(count)],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, f"the build stopped the process ({run.returncode}): " \
+                                f"{run.stderr[-2000:]}"
+    assert run.stdout.strip() == f"built {count}"
     from mi_partpm.kdtree import forest as forest_module
     monkeypatch.setattr(forest_module, "GROUP_PHOTONS", 1000)
     rng = np.random.default_rng(count)
-    pts = rng.random((count, 3)).astype(np.float32)
     ids = np.sort(rng.integers(0, 2, count))
-    first, maps = forest_module._trees(np.bincount(ids, minlength=8), "shared")
-    assert first.shape[0] >= 2 and maps.max() > 1
+    pts = rng.random((count, 3)).astype(np.float32)
     _check_against_scipy(pts, rng.random((300, 3)), 0.1, ids, 8, "shared")
 
 
-@pytest.mark.parametrize("count", [3, 37, 1000])
+def _check_split_planes(forest, count):
+    """Every internal node of a one-map forest: the photons of its left half lie at or below
+    its split value along its axis, those of its right half at or above it."""
+    points, value, axis = forest.points, forest.split_value, forest.split_axis
+    for level in range(forest.depth(0)):
+        for k in range(1 << level):
+            node = (1 << level) - 1 + k
+            first = (k * count) >> level
+            stop = ((k + 1) * count) >> level
+            median = ((2 * k + 1) * count) >> (level + 1)
+            a = int(axis[node])
+            assert np.all(points[first:median, a] <= value[node]), (level, k)
+            assert np.all(points[median:stop, a] >= value[node]), (level, k)
+
+
+@pytest.mark.parametrize("count", [5, 37, 1000])
 def test_leaves_of_one_photon(count):
-    """With leaves of one photon, a node of one photon is split: its split value must be its
-    own photon's coordinate, not the next node's (a wrong plane would hide the photon)."""
+    """With leaves of one photon, a node of one photon is split (5 photons: node 2 of level
+    2 holds photon 2 alone, its median is its end): its split value must be its own
+    photon's coordinate, not the next node's, or the plane would hide the photon."""
     rng = np.random.default_rng(count)
     pts = rng.random((count, 3)).astype(np.float32)
+    _check_split_planes(build_forest(pts, leaf_size=1), count)
     _check_against_scipy(pts, np.concatenate([pts, rng.random((200, 3))]), 0.2,
                          leaf_size=1)
 

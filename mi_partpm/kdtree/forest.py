@@ -34,7 +34,6 @@ whole-array kernels per level and no host sort. The queries over a forest are in
 """
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -326,8 +325,8 @@ def _partition_level(ids, rel, node_first, node_median, node_axis, level_node, i
                      position, last=False):
     """Stable partition of the three sorted orders into every node's two halves.
 
-    ``level_node`` is each position's node in the level's node arrays; a position right of
-    its node's median (in the order of the node's axis) goes right. Every point's side is
+    ``level_node`` is each position's node in the level's node arrays; a position at or
+    right of its node's median (in the order of the node's axis) goes right. Every point's side is
     written at its position in the x order (one scatter) and the x order partitioned with
     one prefix sum and one scatter. An entry of the y or z order then reads its point's new
     position in the x order (one gather, the only random access per order): that is both
@@ -649,25 +648,19 @@ def _shared_leaf_table(order, ids, tree_counts, starts, leaves, first_map, maps_
 
 
 def _records(p, order, payload):
-    """The 4-float records of the photons in tree ``order`` (at least one record): the
-    photons' records are packed in their own order first (sequential packet stores), then
-    read in tree order by one 16-byte packet gather per photon (was one random read per
-    coordinate)."""
+    """The 4-float records of the photons in tree ``order`` (at least one record): each
+    photon's record is one 16-byte packet store at its place in the tree order (the inverse
+    of ``order``), read in the photons' own order (was one random read per coordinate; a
+    packed copy read by a packet gather would cost 16 bytes per photon more)."""
     n = dr.width(order)
     if n == 0:
         return dr.zeros(mi.Float, RECORD_FLOATS)
-    fourth = dr.zeros(mi.Float, dr.width(p)) if payload is None else \
+    place = dr.empty(mi.UInt32, n)               # place[order[t]] = t
+    dr.scatter(place, dr.arange(mi.UInt32, n), order)
+    dr.eval(place)
+    fourth = dr.zeros(mi.Float, n) if payload is None else \
         dr.reinterpret_array(mi.Float, payload)
-    packed = dr.empty(mi.Float, RECORD_FLOATS * dr.width(p))
-    dr.scatter(packed, mi.Vector4f(p.x, p.y, p.z, fourth), dr.arange(mi.UInt32, dr.width(p)))
-    dr.eval(packed)
-    rec = dr.gather(_array_xf(), packed, order, shape=(RECORD_FLOATS, n))
     records = dr.empty(mi.Float, RECORD_FLOATS * n)
-    dr.scatter(records, mi.Vector4f(rec[0], rec[1], rec[2], rec[3]), dr.arange(mi.UInt32, n))
+    dr.scatter(records, mi.Vector4f(p.x, p.y, p.z, fourth), place)
     dr.eval(records)
     return records
-
-
-def _array_xf():
-    """The variant's dynamic-size float array type (of its backend: LLVM or CUDA)."""
-    return getattr(sys.modules[mi.Float.__module__], "ArrayXf")
