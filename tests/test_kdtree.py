@@ -326,9 +326,10 @@ print("built", f.leaf_table.numpy()[-1])
 @pytest.mark.parametrize("count", [1601, 2003])
 def test_shared_trees_beside_a_tree_of_one_map(monkeypatch, count):
     """A tree of one map beside a shared one whose other maps are empty (a wave that traces
-    maps 0 and 1 of 8): the build must not divide by an empty tree's count, also in the
-    lanes a SIMD packet runs past the end (that stopped the process with SIGFPE: so the
-    build runs in a process of its own first), and then finds scipy's photons."""
+    maps 0 and 1 of 8): its leaf table once came from an integer division by a tree's count,
+    which in the lanes a SIMD packet runs past the end divided by zero and stopped the
+    process with SIGFPE; so the build runs in a process of its own first, and then must
+    find scipy's photons."""
     import subprocess
     import sys
     run = subprocess.run([sys.executable, "-c", _SHARED_BESIDE_ONE, mi.variant(), str(count)],

@@ -588,16 +588,15 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     else:
         order = dr.zeros(mi.UInt32, 0)
     del tree_ids
-    if np.any(maps_in_tree > 1):
-        order, leaf_start = _shared_leaf_table(order, ids, tree_counts, starts, leaves,
-                                               first_map, maps_in_tree, leaf_base,
-                                               int(entries.sum())) if n_points else \
-            (order, dr.zeros(mi.UInt32, int(entries.sum())))
+    leaf_first, leaf_tree, leaf_j = _leaf_starts(tree_counts, starts, leaves)
+    if not np.any(maps_in_tree > 1):
+        leaf_start = mi.UInt32(leaf_first.astype(np.uint32))
+    elif n_points:
+        order, leaf_start = _shared_leaf_table(order, ids, leaf_first, leaf_tree, leaf_j,
+                                               leaves, first_map, maps_in_tree, leaf_base,
+                                               int(entries.sum()))
     else:
-        # Leaf j of tree t starts at floor(j c / L); one closing entry per tree.
-        t = np.repeat(np.arange(tree_counts.shape[0]), leaves + 1)
-        j = np.arange(int((leaves + 1).sum())) - np.repeat(leaf_base, leaves + 1)
-        leaf_start = mi.UInt32((starts[t] + (j * tree_counts[t]) // leaves[t]).astype(np.uint32))
+        leaf_start = dr.zeros(mi.UInt32, int(entries.sum()))
     records = _records(p, order, payload)
     return Forest(records=records, nodes=nodes, leaf_table=leaf_start,
                   tree_order=order, node_base=node_base, leaf_base=leaf_base,
@@ -617,28 +616,37 @@ def _trees(counts: np.ndarray, layout: str):
             np.array([len(g) for g in groups], dtype=np.int64))
 
 
-def _shared_leaf_table(order, ids, tree_counts, starts, leaves, first_map, maps_in_tree,
-                       leaf_base, entries):
-    """Put every leaf's photons map after map and make the leaf table of the trees (see
-    :class:`Forest`). Position x of tree t lies in leaf j = floor(((x + 1) L - 1) / c) (leaf j
-    covers [floor(j c / L), floor((j + 1) c / L))); its photon's entry is leaf_base[t] +
-    j s + (map - first map), and a stable sort by entry orders each leaf by map. An entry's
-    first photon is the count of photons of the entries before it (a closing entry has
-    none)."""
-    n = dr.width(order)
-    pos = dr.arange(mi.UInt32, n)
-    t_of = np.repeat(np.arange(tree_counts.shape[0]), tree_counts).astype(np.uint32)
-    tree = mi.UInt32(t_of)
+def _leaf_starts(tree_counts, starts, leaves):
+    """The first position of every leaf of every tree and each tree's end, tree after tree
+    (``leaves[t] + 1`` entries per tree; leaf j of a tree of c photons and L leaves starts c j
+    / L, rounded down, after the tree's start), with each entry's tree and index j (j = L:
+    the end). Host arrays, one entry per leaf: the separate layout's leaf table."""
+    t = np.repeat(np.arange(tree_counts.shape[0]), leaves + 1)
+    j = np.arange(t.shape[0]) - np.repeat(np.cumsum(leaves + 1) - (leaves + 1), leaves + 1)
+    return starts[t] + (j * tree_counts[t]) // leaves[t], t, j
 
-    def per_tree(values):
-        return dr.gather(mi.UInt32, mi.UInt32(np.asarray(values).astype(np.uint32)), tree)
-    x = mi.UInt64(pos - per_tree(starts))
-    # Never 0, also in the lanes a SIMD packet runs past the end (an integer division by
-    # zero stops the process).
-    c = mi.UInt64(dr.maximum(per_tree(tree_counts), 1))
-    leaf = mi.UInt32(((x + 1) * mi.UInt64(per_tree(leaves)) - 1) // c)
-    local = dr.gather(mi.UInt32, ids, order) - per_tree(first_map)
-    entry = per_tree(leaf_base) + leaf * per_tree(maps_in_tree) + local
+
+def _shared_leaf_table(order, ids, leaf_first, leaf_tree, leaf_j, leaves, first_map,
+                       maps_in_tree, leaf_base, entries):
+    """Put every leaf's photons map after map and make the leaf table of the trees (see
+    :class:`Forest`). A position's leaf is the count of leaves (of all trees, in order) that
+    start at or before it, less one (:func:`_leaf_starts`; an empty leaf starts where the
+    next one does and is passed over); the photon's entry is leaf_base[t] + j s + (map -
+    first map), and a stable sort by entry orders each leaf by map. An entry's first photon
+    is the count of photons of the entries before it (a closing entry has none)."""
+    n = dr.width(order)
+    is_leaf = leaf_j < leaves[leaf_tree]                    # not a tree's closing entry
+    first, t, j = leaf_first[is_leaf], leaf_tree[is_leaf], leaf_j[is_leaf]
+    later = first[1:]                                       # every leaf start but the first
+    later = later[later < n]                                # (empty leaves at the very end)
+    count = dr.zeros(mi.UInt32, n)
+    if later.size:
+        dr.scatter_reduce(dr.ReduceOp.Add, count, 1, mi.UInt32(later.astype(np.uint32)))
+    leaf = dr.prefix_reduce(dr.ReduceOp.Add, count, exclusive=False)
+    base = mi.UInt32((leaf_base[t] + j * maps_in_tree[t]).astype(np.uint32))
+    first_of = mi.UInt32(first_map[t].astype(np.uint32))
+    entry = dr.gather(mi.UInt32, base, leaf) + dr.gather(mi.UInt32, ids, order) - \
+        dr.gather(mi.UInt32, first_of, leaf)
     perm = dr.argsort(entry)
     order = dr.gather(mi.UInt32, order, perm)
     count = dr.zeros(mi.UInt32, entries)
