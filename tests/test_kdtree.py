@@ -382,3 +382,49 @@ def test_a_ball_over_everything_tests_every_photon_once(count, leaf):
     _, found, stats = _query_sums(forest, np.ones(count), np.full((3, 3), 0.5), 10.0)
     assert np.all(stats.photons_tested.numpy() == count)
     assert np.all(found == count)
+
+
+def _check_medians(forest, m, points, ids):
+    """Every node of map m's separate tree splits its photons (the caller's ``points`` of
+    map m) at their median along their longest axis (ties: x, then y), as NumPy finds them:
+    the median is the coordinate of the node's middle photon in the order along that axis."""
+    mine = points[ids == m]
+    count = mine.shape[0]
+    base = int(forest.node_base[m])
+    start = int(forest.leaf_start[int(forest.leaf_base[m])])
+    tree_points = forest.points[start:start + count]
+    assert np.array_equal(np.sort(forest.order[start:start + count]),
+                          np.flatnonzero(ids == m))
+    for level in range(forest.depth(m)):
+        for k in range(1 << level):
+            first = (k * count) >> level
+            stop = ((k + 1) * count) >> level
+            median = ((2 * k + 1) * count) >> (level + 1)
+            node = tree_points[first:stop]
+            extent = node.max(axis=0) - node.min(axis=0)
+            axis = 0 if extent[0] >= max(extent[1], extent[2]) else \
+                (1 if extent[1] >= extent[2] else 2)
+            got_axis = int(forest.split_axis[base + (1 << level) - 1 + k])
+            got_value = forest.split_value[base + (1 << level) - 1 + k]
+            assert got_axis == axis, (m, level, k, extent)
+            assert got_value == np.sort(node[:, axis])[min(median, stop - 1) - first], \
+                (m, level, k)
+
+
+def test_large_nodes_split_at_their_exact_medians():
+    """Nodes of more than 2^16 photons sort their three orders with one prefix sum each, the
+    smaller ones two orders with one shared sum (each count in 16 bits of one word): every
+    node of trees that go through both, alone in a group and two maps in a group, has the
+    axis and median NumPy finds. Photons on a few planes give ties along every axis."""
+    rng = np.random.default_rng(7)
+    count = 150_000
+    pts = rng.random((count, 3)).astype(np.float32)
+    pts[: count // 3, 1] = np.round(pts[: count // 3, 1] * 8) / 8
+    ids = np.sort(rng.integers(0, 2, count))
+    ids[: 140_000] = 0
+    forest = build_forest(pts, ids, 2, leaf_size=32)
+    assert int(np.bincount(ids)[0]) > 2 << 16
+    for m in (0, 1):
+        _check_medians(forest, m, pts, ids)
+    alone = build_forest(pts, leaf_size=32)
+    _check_medians(alone, 0, pts, np.zeros(count, np.int64))
