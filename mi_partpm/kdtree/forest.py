@@ -328,8 +328,11 @@ def _presort(coord, map_ids, map_count):
     n = dr.width(orders[0])
     where = dr.empty(mi.UInt32, n)               # each point's position in the x order
     dr.scatter(where, dr.arange(mi.UInt32, n), orders[0])
-    rel = [None] + [dr.gather(mi.UInt32, where, orders[a]) for a in (1, 2)]
-    dr.eval(rel[1:])
+    rel = [None]
+    for a in (1, 2):                             # a kernel each: measured faster than one
+        rel.append(dr.gather(mi.UInt32, where, orders[a]))
+        dr.eval(rel[-1])
+        orders[a] = None
     return orders[0], rel
 
 
