@@ -14,7 +14,7 @@ import mitsuba as mi
 import numpy as np
 
 from .kdtree import LEAF_SIZE, RECORD_FLOATS, Forest, build_forest, tree_bytes
-from .photons import Photons, decode_direction
+from .photons import Photons, decode_direction, gather_each, spectrum_channels
 
 __all__ = ["PhotonMaps", "build_photon_maps", "fixed_radius", "record_bytes", "map_bytes"]
 
@@ -90,8 +90,7 @@ def record_bytes(with_bounce: bool = False) -> int:
     """Bytes of one photon on the device: its record in the forest (position float32 and
     direction code: 16) and its power (one float32 per colour channel of the variant), and
     the bounce count (uint32) when the path length is bounded."""
-    channels = dr.size_v(mi.Spectrum) if dr.size_v(mi.Spectrum) > 0 else 1
-    return 4 * RECORD_FLOATS + 4 * channels + (4 if with_bounce else 0)
+    return 4 * RECORD_FLOATS + 4 * spectrum_channels() + (4 if with_bounce else 0)
 
 
 def map_bytes(photon_counts, leaf_size: int = LEAF_SIZE):
@@ -115,9 +114,8 @@ def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE,
     forest = build_forest(photons.points, photons.maps, photons.map_count, leaf_size,
                           payload=photons.code, layout=layout)
     order = forest.tree_order
-    power = dr.gather(mi.Spectrum, photons.flux, order)
-    bounce = dr.gather(mi.UInt32, photons.bounces, order) if keep_bounce else None
-    dr.eval(power, bounce)
+    power = gather_each(photons.flux, order)
+    bounce = gather_each(photons.bounces, order) if keep_bounce else None
     return PhotonMaps(forest=forest, power=power, emitted=photons.emitted, bounce=bounce)
 
 

@@ -13,7 +13,31 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["Photons", "encode_direction", "decode_direction", "empty_photons"]
+__all__ = ["Photons", "encode_direction", "decode_direction", "empty_photons",
+           "spectrum_channels", "gather_each"]
+
+
+def spectrum_channels() -> int:
+    """Colour channels of the variant's ``mi.Spectrum`` (1 or 3)."""
+    return dr.size_v(mi.Spectrum) if dr.size_v(mi.Spectrum) > 0 else 1
+
+
+def gather_each(value, index):
+    """``value`` (a Dr.Jit array: one component, or several as a ``mi.Spectrum`` or
+    ``mi.Point3f``) at ``index``, evaluated one component at a time: on the LLVM backend one
+    kernel that gathers three components ran 1.6 to 3 times longer than three kernels that
+    gather one each (3 x 10^7 photons put in tree order, three colour channels: 430-1060 ms
+    against about 270)."""
+    if dr.depth_v(value) > 1:
+        parts = []
+        for c in range(len(value)):
+            part = dr.gather(type(value[c]), value[c], index)
+            dr.eval(part)
+            parts.append(part)
+        return type(value)(*parts)
+    out = dr.gather(type(value), value, index)
+    dr.eval(out)
+    return out
 
 
 def encode_direction(d):
@@ -103,8 +127,7 @@ class Photons:
     @property
     def nbytes(self) -> int:
         """Bytes of the arrays on the device."""
-        channels = dr.size_v(mi.Spectrum) if dr.size_v(mi.Spectrum) > 0 else 1
-        return len(self) * (12 + 4 + 4 * channels + 4 + 4)
+        return len(self) * (12 + 4 + 4 * spectrum_channels() + 4 + 4)
 
     # ---------------------------------------------------------------- host views
 
@@ -121,8 +144,7 @@ class Photons:
     @property
     def power(self) -> np.ndarray:
         """(K, C) float32 powers."""
-        channels = dr.size_v(mi.Spectrum) if dr.size_v(mi.Spectrum) > 0 else 1
-        return np.array(self.flux, dtype=np.float32).reshape(channels, -1).T
+        return np.array(self.flux, dtype=np.float32).reshape(spectrum_channels(), -1).T
 
     @property
     def map_id(self) -> np.ndarray:

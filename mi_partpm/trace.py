@@ -29,7 +29,7 @@ import numpy as np
 
 from .eyepath import lands_on, passes_through
 from .memory import TRACE_BATCH
-from .photons import Photons, empty_photons, encode_direction
+from .photons import Photons, empty_photons, encode_direction, spectrum_channels
 from .props import segment_limit
 from .scenes import check_scene
 
@@ -272,7 +272,7 @@ class _Run:
         rec = dr.gather(_array_xf(), slots, keep, shape=(SLOT_FLOATS, stored))
         dr.eval(rec)
         del slots, keep
-        channels = _channels()
+        channels = spectrum_channels()
         flux = mi.Spectrum(*[rec[4 + c] for c in range(channels)])
         photon = dr.reinterpret_array(mi.UInt32, rec[SLOT_FLOATS - 1])
         # A photon's map is its lane's.
@@ -308,14 +308,9 @@ def _array_xf():
     return getattr(sys.modules[mi.Float.__module__], "ArrayXf")
 
 
-def _channels() -> int:
-    """Colour channels of the variant's ``mi.Spectrum`` (1 or 3)."""
-    return dr.size_v(mi.Spectrum) if dr.size_v(mi.Spectrum) > 0 else 1
-
-
 def _slot(position, code, flux, photon):
     """A stored photon's slot as two 4-float packets (see :data:`SLOT_FLOATS`)."""
-    f = [flux[c] for c in range(_channels())]
+    f = [flux[c] for c in range(spectrum_channels())]
     f += [dr.zeros(mi.Float, dr.width(f[0]))] * (3 - len(f))
     return (mi.Vector4f(position.x, position.y, position.z,
                         dr.reinterpret_array(mi.Float, code)),
