@@ -654,7 +654,8 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     # One unused node when every tree is a single leaf: no empty arrays.
     nodes = dr.zeros(mi.Float, 2 * max(1, int(internal.sum())))
 
-    tree_ids = ids if layout == "separate" else dr.gather(mi.UInt32, mi.UInt32(
+    # Each photon's tree (its map's, when every tree holds one map).
+    tree_ids = ids if not np.any(maps_in_tree > 1) else dr.gather(mi.UInt32, mi.UInt32(
         map_tree.astype(np.uint32)), ids)
     if n_points:
         order = _build_groups(p, tree_ids, tree_counts, starts, depth, node_base, nodes)
