@@ -428,3 +428,35 @@ def test_large_nodes_split_at_their_exact_medians():
         _check_medians(forest, m, pts, ids)
     alone = build_forest(pts, leaf_size=32)
     _check_medians(alone, 0, pts, np.zeros(count, np.int64))
+
+
+@pytest.mark.parametrize("map_count", [1, 3, 70_000])
+def test_presort_orders_by_map_then_coordinate_stably(map_count):
+    """The build's radix sort (two 16-bit passes over a float's order-preserving bits, one
+    over the map ids) gives NumPy's stable order by (map, value): negative values, equal
+    values, -0 before +0, and map counts beyond one pass's 2^16 buckets (Dr.Jit's argsort)."""
+    from mi_partpm.kdtree.forest import _sorted_by_map_then
+    rng = np.random.default_rng(map_count)
+    n = 50_000
+    key = (rng.standard_normal(n) * 10).astype(np.float32)
+    key[: n // 4] = np.round(key[: n // 4])                  # many ties
+    key[n // 4: n // 4 + 50] = -0.0
+    key[n // 4 + 50: n // 4 + 100] = 0.0
+    key[n // 2: n // 2 + 10] = [-3e38, 3e38, -1e-38, 1e-38, -1e-45, 1e-45, 7, -7, 0, -0.0]
+    maps = rng.integers(0, map_count, n).astype(np.uint32)
+    got = _sorted_by_map_then(mi.Float(key), mi.UInt32(maps), map_count).numpy()
+    # -0 sorts before +0 by its bits, as Dr.Jit's argsort orders them.
+    bits = key.view(np.uint32)
+    ordinal = np.where(bits >> 31 == 1, ~bits, bits | 0x80000000).astype(np.uint32)
+    np.testing.assert_array_equal(got, np.lexsort((ordinal, maps)) if map_count > 1
+                                  else np.argsort(ordinal, kind="stable"))
+
+
+def test_negative_coordinates_split_at_their_exact_medians():
+    """Photons on both sides of 0 (a scene centred on the origin): every node's axis and
+    median are NumPy's."""
+    rng = np.random.default_rng(3)
+    pts = (rng.random((20_000, 3)) * 2 - 1).astype(np.float32)
+    pts[:2000, 2] = -0.0
+    forest = build_forest(pts, leaf_size=8)
+    _check_medians(forest, 0, pts, np.zeros(20_000, np.int64))
