@@ -353,8 +353,9 @@ def _split_level(coord, ids, rel, first, stop, median):
                                dr.select(extent[1] >= extent[2], 1, 2)))
     at_median = dr.minimum(median, stop - 1)    # only the split axis's order is read there
     on = [axis == a for a in range(3)]
-    x_position = dr.select(on[0], at_median, dr.gather(mi.UInt32, rel[1], at_median, on[1]) +
-                           dr.gather(mi.UInt32, rel[2], at_median, on[2]))
+    x_position = dr.select(on[0], at_median,
+                           dr.select(on[1], dr.gather(mi.UInt32, rel[1], at_median, on[1]),
+                                     dr.gather(mi.UInt32, rel[2], at_median, on[2])))
     point = dr.gather(mi.UInt32, ids, x_position)
     split = dr.select(on[0], dr.gather(mi.Float, coord[0], point, on[0]),
                       dr.select(on[1], dr.gather(mi.Float, coord[1], point, on[1]),
@@ -372,10 +373,10 @@ def _partition_level(ids, rel, node_first, node_median, node_axis, level_node, i
     written at its position in the x order (one scatter) and the x order partitioned with
     one prefix sum and one scatter. An entry of the y or z order then reads its point's new
     position in the x order (one gather, the only random access per order): that is both
-    the entry's new name and its side (right of the median or not); prefix sums and scatters
-    partition the two orders (not after the ``last`` level: only the tree order is left to
-    find). With ``packed`` (every node of the level holds fewer than 2**16 photons) the y and
-    z orders share one prefix sum and one kernel of targets and scatters: their right-goer
+    the entry's new name and its side (right of the median or not); a prefix sum per order
+    and one kernel of targets and scatters partition the two orders (not after the ``last``
+    level: only the tree order is left to find). With ``packed`` (every node of the level
+    holds fewer than 2**16 photons) the two orders share one prefix sum: their right-goer
     flags are the low and high 16 bits of one 32-bit count, and within a node the difference
     of two counts splits into the two exact counts. Returns the new ``(ids, rel)`` and, per
     position, 1 where it went right."""
@@ -407,33 +408,24 @@ def _partition_level(ids, rel, node_first, node_median, node_axis, level_node, i
     new_ids = dr.empty(mi.UInt32, n)
     dr.scatter(new_ids, ids, to)
     dr.eval(new_ids)
-    new_rel = [None]
     if last:
-        pass
-    elif packed:
-        renamed = []
-        for a in (1, 2):           # a kernel each: both gathers in one ran 2-3 times slower
-            renamed.append(dr.gather(mi.UInt32, to, rel[a]))
-            dr.eval(renamed[-1])
-            rel[a] = None
-        right = [mi.UInt32(r >= median) for r in renamed]
+        return new_ids, [None], right_of_median
+    renamed = []
+    for a in (1, 2):               # a kernel each: both gathers in one ran 2-3 times slower
+        renamed.append(dr.gather(mi.UInt32, to, rel[a]))
+        dr.eval(renamed[-1])
+        rel[a] = None                             # free the old order
+    right = [mi.UInt32(r >= median) for r in renamed]
+    if packed:
         counts = rights_in_node(right[0] | (right[1] << 16))
-        out = [dr.empty(mi.UInt32, n) for _ in (1, 2)]
-        for k, rank in enumerate((counts & 0xFFFF, counts >> 16)):
-            dr.scatter(out[k], renamed[k], targets(right[k], rank))
-        dr.eval(out)
-        new_rel += out
+        ranks = (counts & 0xFFFF, counts >> 16)
     else:
-        for a in (1, 2):
-            renamed = dr.gather(mi.UInt32, to, rel[a])  # the point's new position in x
-            dr.eval(renamed)
-            right = mi.UInt32(renamed >= median)
-            out = dr.empty(mi.UInt32, n)
-            dr.scatter(out, renamed, targets(right, rights_in_node(right)))
-            dr.eval(out)
-            rel[a] = None                         # free the old order before the next one
-            new_rel.append(out)
-    return new_ids, new_rel, right_of_median
+        ranks = [rights_in_node(r) for r in right]
+    out = [dr.empty(mi.UInt32, n) for _ in right]
+    for k in (0, 1):
+        dr.scatter(out[k], renamed[k], targets(right[k], ranks[k]))
+    dr.eval(out)
+    return new_ids, [None] + out, right_of_median
 
 
 def _partition_levels(coord, map_ids, counts, starts, depth, node_base, nodes):
@@ -455,8 +447,9 @@ def _partition_levels(coord, map_ids, counts, starts, depth, node_base, nodes):
     n_maps = counts.shape[0]
     ids, rel = _presort(coord, map_ids, n_maps)
     position = dr.arange(mi.UInt32, n)
-    point_map = dr.gather(mi.UInt32, map_ids, ids)   # map of each position (runs of maps)
+    point_map = None                             # map of each position (runs of maps)
     if n_maps > 1:
+        point_map = dr.gather(mi.UInt32, map_ids, ids)
         dr.eval(point_map)
     node_in_map = dr.zeros(mi.UInt32, n)         # each position's node within its map's level
     for level in range(int(depth.max(initial=0))):
@@ -654,8 +647,9 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     # One unused node when every tree is a single leaf: no empty arrays.
     nodes = dr.zeros(mi.Float, 2 * max(1, int(internal.sum())))
 
+    one_map_trees = not np.any(maps_in_tree > 1)
     # Each photon's tree (its map's, when every tree holds one map).
-    tree_ids = ids if not np.any(maps_in_tree > 1) else dr.gather(mi.UInt32, mi.UInt32(
+    tree_ids = ids if one_map_trees else dr.gather(mi.UInt32, mi.UInt32(
         map_tree.astype(np.uint32)), ids)
     if n_points:
         order = _build_groups(p, tree_ids, tree_counts, starts, depth, node_base, nodes)
@@ -663,7 +657,7 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
         order = dr.zeros(mi.UInt32, 0)
     del tree_ids
     leaf_first, leaf_tree, leaf_j = _leaf_starts(tree_counts, starts, leaves)
-    if not np.any(maps_in_tree > 1):
+    if one_map_trees:
         leaf_start = mi.UInt32(leaf_first.astype(np.uint32))
     elif n_points:
         order, leaf_start = _shared_leaf_table(order, ids, leaf_first, leaf_tree, leaf_j,
