@@ -181,7 +181,9 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     progress : callable(str), optional
         Receives a line per batch.
     batch_size : int
-        Photon paths traced together at most; more run in batches (same photons).
+        Photon paths traced together at most; more run in batches (same photons). The
+        first batch is a pilot of ``batch_size // 16`` paths (at least 1024) that measures
+        how many photons a path stores, so that later batches size their buffers.
     memory_check : callable(stored_per_emitted, traced), optional
         Called after each batch but the last with the measured photons stored per photon
         emitted; it may raise to stop before memory runs out.
@@ -208,11 +210,16 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     # Lane l of the traced maps -> (map, index within the map).
     ends = np.cumsum(sizes[maps])
     batches, segments, done = [], 0, 0
-    per_lane = float(min(max_depth, 3))          # stored photons per lane, first guess
-    for first in range(0, n_lanes, batch_size):
+    # A pilot batch measures the photons stored per path before full batches size their
+    # buffers: a buffer too small for a batch means tracing that batch again (a scene of
+    # white walls stores 7 photons per path, the Cornell box 3).
+    pilot = min(n_lanes, max(PILOT_MIN, batch_size // PILOT_SHARE))
+    per_lane = float(min(max_depth, PILOT_GUESS))
+    for first in [0, *range(pilot, n_lanes, batch_size)]:
         # Batches only bound the memory: every lane's random stream depends on its (map,
         # index in the map) alone, so the photons are the same for any batch size.
-        lanes = np.arange(first, min(first + batch_size, n_lanes), dtype=np.int64)
+        last = min(first + (pilot if first == 0 else batch_size), n_lanes)
+        lanes = np.arange(first, last, dtype=np.int64)
         which = np.searchsorted(ends, lanes, side="right")
         index = lanes - (ends[which] - sizes[maps][which])
         photons, traced = run.batch(maps[which].astype(np.uint32), index.astype(np.uint64),
@@ -224,11 +231,16 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         per_lane = max(stored / done, 0.05)
         if memory_check is not None and done < n_lanes:
             memory_check(stored / done, done)
-        if progress is not None and n_lanes > batch_size:
+        if progress is not None and n_lanes > pilot:
             progress(f"batch: {done} of {n_lanes} photons traced, {stored} stored")
     photons = _concat(batches, photon_count, map_count)
     photons.segments = segments
     return photons
+
+
+#: The pilot batch: ``batch_size // PILOT_SHARE`` paths, at least ``PILOT_MIN``, with room
+#: for ``PILOT_GUESS`` stored photons per path (at most 47 MB of slots for 2^16 paths).
+PILOT_SHARE, PILOT_MIN, PILOT_GUESS = 16, 1024, 16
 
 
 class _Run:
@@ -246,27 +258,47 @@ class _Run:
         """Trace one batch; returns (photons, ray segments traced)."""
         lanes = lane_map.shape[0]
         capacity = max(1024, int(lanes * per_lane * 1.25))
+        ranked = True
         while True:
-            out, counter, segments = self._kernel(mi.UInt32(lane_map), mi.UInt64(lane_index),
-                                                  capacity)
+            out, counts, too_deep, counter, segments = self._kernel(
+                mi.UInt32(lane_map), mi.UInt64(lane_index), capacity, ranked)
             stored = int(counter[0])
-            if stored <= capacity:
+            if ranked and int(too_deep[0]) > 0:
+                ranked = False                    # a bounce count did not fit beside a rank
+            elif stored <= capacity:
                 break
-            capacity = stored                     # trace again with room for every photon
-        # The slots were claimed in whatever order the threads ran: put the photons in the
-        # order of the batch's photons (a photon's stores are already in bounce order, and the
-        # sort is stable), so that every run hands the same arrays to the build.
+            capacity = max(capacity, stored)      # trace again with room for every photon
         if stored == 0:
             return empty_photons(self.photon_count, 0), int(segments[0])
+        # The slots were claimed in whatever order the threads ran: put the photons in the
+        # order of the batch's photons, and a photon's in bounce order, so that every run
+        # hands the same arrays to the build. A photon's first slot in that order is the
+        # prefix sum of the photons stored per photon before it, and each stored photon
+        # carries its rank among its photon's: one scatter gives the order, no sort.
         # Each buffer is freed once read: the batch's peak is its slots and the photons in
         # photon order (one packet gather cannot read half a slot).
         slots, bounces = out
         out.clear()
+        index = dr.arange(mi.UInt32, stored)
         photon_of = dr.reinterpret_array(mi.UInt32, dr.gather(
-            mi.Float, slots, SLOT_FLOATS * dr.arange(mi.UInt32, stored) + SLOT_FLOATS - 1))
-        keep = dr.argsort(photon_of)
-        del photon_of
+            mi.Float, slots, SLOT_FLOATS * index + SLOT_FLOATS - 1))
+        if ranked:
+            if int(dr.sum(counts)[0]) != stored:     # every slot has a place of its own
+                raise RuntimeError(f"tracer: {int(dr.sum(counts)[0])} photons counted per "
+                                   f"path but {stored} stored")
+            first = dr.prefix_sum(counts)             # exclusive
+            del counts
+            place = dr.gather(mi.UInt32, first, photon_of) + (
+                dr.gather(mi.UInt32, bounces, index) >> RANK_SHIFT)
+            keep = dr.empty(mi.UInt32, stored)
+            dr.scatter(keep, index, place)
+            del first, place
+        else:
+            keep = dr.argsort(photon_of)       # stable: a photon's slots in bounce order
+        del photon_of, index
         bounce = dr.gather(mi.UInt32, bounces, keep)
+        if ranked:
+            bounce &= (1 << RANK_SHIFT) - 1
         dr.eval(bounce)
         del bounces
         rec = dr.gather(_array_xf(), slots, keep, shape=(SLOT_FLOATS, stored))
@@ -283,20 +315,29 @@ class _Run:
         dr.eval(photons.points, photons.code, photons.flux, photons.maps, photons.bounces)
         return photons, int(segments[0])
 
-    def _kernel(self, map_id, lane_index, capacity):
+    def _kernel(self, map_id, lane_index, capacity, ranked):
         photons = dr.width(map_id)
         # Uninitialised: only the slots the kernel writes are read.
         out = (dr.empty(mi.Float, SLOT_FLOATS * capacity), dr.empty(mi.UInt32, capacity))
+        counts = dr.zeros(mi.UInt32, photons) if ranked else None
         counter = dr.zeros(mi.UInt32, 1)
+        # Stored photons whose bounce count does not fit beside their rank.
+        too_deep = dr.zeros(mi.UInt32, 1) if ranked else None
         # Recording the loop once instead of twice (the loop optimisation's second recording)
         # saves about 0.2 s a call; the kernel is the same.
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
             segments = _trace_paths(self, map_id, lane_index, out, counter, capacity,
-                                    lane_count(photons))
+                                    lane_count(photons), counts, too_deep)
         total = dr.sum(segments)
-        dr.eval(out, counter, total)
-        return list(out), counter, total
+        dr.eval(out, counts, too_deep, counter, total)
+        return list(out), counts, too_deep, counter, total
 
+
+#: A stored photon's bounce count and its rank among its photon's stored photons share one
+#: 32-bit word: the bounce count in the low RANK_SHIFT bits. A batch that stores a photon
+#: after 2^RANK_SHIFT bounces or more (Russian roulette makes that all but impossible) is
+#: traced again without ranks and sorted instead.
+RANK_SHIFT = 16
 
 #: Floats of a stored photon's slot in the tracer's buffer: x, y, z, direction code, power
 #: (3 channels, or 1 and 2 unused), the photon's index in its batch (as float bits).
@@ -338,14 +379,18 @@ def shading_correction(si, wi):
 
 
 @dr.syntax
-def _trace_paths(run, map_id, photon_index, out, counter, capacity, width):
+def _trace_paths(run, map_id, photon_index, out, counter, capacity, width, counts=None,
+                 too_deep=None):
     """The bounce loop of one batch (one kernel): take a photon, store, scatter, roulette.
 
     ``width`` lanes share the batch's photons (``map_id`` and ``photon_index`` per photon): a
     lane whose path has ended claims the next photon with ``dr.scatter_inc`` and starts it
     from its own random stream (map, index), so a photon is the same whichever lane traces
-    it, and a SIMD packet does not wait for its longest path. Returns the segments each lane
-    traced."""
+    it, and a SIMD packet does not wait for its longest path. With ``counts`` (one per
+    photon), each photon's count of stored photons goes there once its path has ended, and
+    each stored photon's rank among them goes beside its bounce count (:data:`RANK_SHIFT`);
+    ``too_deep`` counts the stored photons whose bounce count does not fit there.
+    Returns the segments each lane traced."""
     scene = run.scene
     slots, bounces = out
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
@@ -355,6 +400,8 @@ def _trace_paths(run, map_id, photon_index, out, counter, capacity, width):
     ray = dr.zeros(mi.Ray3f, width)
     power = dr.zeros(mi.Spectrum, width)
     photon = dr.zeros(mi.UInt32, width)          # the batch index of the lane's photon
+    rank = dr.zeros(mi.UInt32, width)            # photons the lane's photon stored so far
+    ranked = counts is not None
     active = dr.full(mi.Bool, False, width)      # the lane's photon is still travelling
     finished = dr.full(mi.Bool, False, width)    # no photon left for the lane
     bounce = dr.zeros(mi.UInt32, width) + 1
@@ -368,6 +415,8 @@ def _trace_paths(run, map_id, photon_index, out, counter, capacity, width):
     while dr.hint(~finished, label="partpm_trace"):
         # Lanes without a photon take the next one; none left: the lane is done.
         need = ~active & ~finished
+        if dr.hint(ranked, mode="scalar"):
+            dr.scatter(counts, rank, photon, need & (rank > 0))   # the photon that ended
         claim = dr.scatter_inc(queue, mi.UInt32(0), need)
         fresh = need & (claim < photons)
         finished |= need & ~fresh
@@ -382,6 +431,7 @@ def _trace_paths(run, map_id, photon_index, out, counter, capacity, width):
             power = dr.select(fresh, new_power, power)
             photon = dr.select(fresh, claim, photon)
             bounce = dr.select(fresh, 1, bounce)
+            rank = dr.select(fresh, 0, rank)
             delta_only |= fresh
             active = fresh & dr.any(power != 0) & dr.all(dr.isfinite(power))
 
@@ -407,7 +457,12 @@ def _trace_paths(run, map_id, photon_index, out, counter, capacity, width):
                            power * shading_correction(si, -ray.d), photon)
         dr.scatter(slots, head, 2 * slot, write)          # packet stores (dr.JitFlag.PacketOps)
         dr.scatter(slots, tail, 2 * slot + 1, write)
-        dr.scatter(bounces, bounce, slot, write)
+        if dr.hint(ranked, mode="scalar"):
+            dr.scatter(bounces, bounce | (rank << RANK_SHIFT), slot, write)
+            rank += dr.select(store, 1, 0)
+            dr.scatter_inc(too_deep, mi.UInt32(0), store & (bounce >= 1 << RANK_SHIFT))
+        else:
+            dr.scatter(bounces, bounce, slot, write)
 
         # The next segment: BSDF sampling, then Russian roulette on the throughput.
         active &= bounce < depth_limit
@@ -447,7 +502,7 @@ def _concat(batches, photon_count, map_count) -> Photons:
     # Field by field, each batch's copy dropped once moved: at most one field is held twice.
     merged = []
     for name in _FIELDS:
-        target = dr.zeros(type(getattr(batches[0], name)), total)
+        target = dr.empty(type(getattr(batches[0], name)), total)    # every entry written
         offset = 0
         for b, size in zip(batches, sizes):
             slot = dr.arange(mi.UInt32, size) + dr.opaque(mi.UInt32, offset)

@@ -85,21 +85,75 @@ def test_memory_is_checked_again_while_tracing_in_batches():
     def check(ratio, done):
         seen.append((ratio, done))
         raise MemoryGuardError(f"projected from {done} photons")
-    with pytest.raises(MemoryGuardError, match="projected from 5000 photons"):
+    # The first check follows the pilot batch: 5000 // 16 paths, raised to the minimum 1024.
+    with pytest.raises(MemoryGuardError, match="projected from 1024 photons"):
         trace_photons(scene, 20_000, 4, 0, batch_size=5000, memory_check=check)
     # The measured ratio of stored to emitted photons in the Cornell box is about 3.
-    assert seen == [(seen[0][0], 5000)] and 2.0 < seen[0][0] < 4.0
+    assert seen == [(seen[0][0], 1024)] and 2.0 < seen[0][0] < 4.0
 
 
-def test_batches_give_the_same_photons():
+def assert_same_photons(a, b):
+    """The same stored photons in the same order, bit for bit."""
+    assert len(a) == len(b) and a.segments == b.segments
+    for field in ("points", "code", "flux", "maps", "bounces"):
+        np.testing.assert_array_equal(np.asarray(getattr(a, field)),
+                                      np.asarray(getattr(b, field)), err_msg=field)
+
+
+def test_batches_give_the_same_photons_in_the_same_order():
     scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
     a = trace_photons(scene, 20_000, 3, 1)
-    b = trace_photons(scene, 20_000, 3, 1, batch_size=3000)
-    ka, kb = np.lexsort(a.position.T), np.lexsort(b.position.T)
-    assert len(a) == len(b) and a.segments == b.segments
-    np.testing.assert_array_equal(a.position[ka], b.position[kb])
-    np.testing.assert_array_equal(a.power[ka], b.power[kb])
-    np.testing.assert_array_equal(a.map_id[ka], b.map_id[kb])
+    for batch in (3000, 700, 19_999):
+        assert_same_photons(a, trace_photons(scene, 20_000, 3, 1, batch_size=batch))
+
+
+def closed_white_box():
+    """A closed box of white walls lit from inside: about 7 photons stored per path."""
+    return mi.load_dict({
+        "type": "scene",
+        "box": {"type": "cube", "flip_normals": True,
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.7}}},
+        "light": {"type": "point", "position": [0, 0.9, 0],
+                  "intensity": {"type": "rgb", "value": 10.0}}})
+
+
+def test_no_batch_is_traced_twice_where_paths_store_many_photons(monkeypatch):
+    """The pilot batch measures the photons stored per path before the full batches size
+    their buffers, so a scene that stores twice the Cornell box's does not trace a batch
+    again (a buffer too small means tracing that batch again)."""
+    import mi_partpm.trace as trace
+    calls = []
+    kernel = trace._Run._kernel
+
+    def counted(self, map_id, *rest):
+        calls.append(dr.width(map_id))
+        return kernel(self, map_id, *rest)
+    monkeypatch.setattr(trace._Run, "_kernel", counted)
+    photons = trace_photons(closed_white_box(), 60_000, 2, 0, batch_size=32_000)
+    assert len(photons) / 60_000 > 5
+    assert calls == [2000, 32_000, 26_000]
+
+
+def test_photons_are_put_in_order_by_rank_as_by_a_sort(monkeypatch):
+    """Each stored photon carries its rank among its path's, beside its bounce count; a
+    batch that stores a photon past 2^RANK_SHIFT bounces is traced again and sorted instead.
+    With 3 bits (bounce 8 or more: every batch here), the sort must give the same arrays."""
+    import mi_partpm.trace as trace
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    ranked = []
+    kernel = trace._Run._kernel
+
+    def seen(self, map_id, lane_index, capacity, by_rank):
+        ranked.append(by_rank)
+        return kernel(self, map_id, lane_index, capacity, by_rank)
+    monkeypatch.setattr(trace._Run, "_kernel", seen)
+    a = trace_photons(scene, 20_000, 3, 1, batch_size=6000)
+    assert not any(b is False for b in ranked)
+    monkeypatch.setattr(trace, "RANK_SHIFT", 3)
+    ranked.clear()
+    b = trace_photons(scene, 20_000, 3, 1, batch_size=6000)
+    assert ranked.count(False) >= 4 and int(np.asarray(b.bounces).max()) >= 8
+    assert_same_photons(a, b)
 
 
 def test_lanes_that_take_photons_in_turn_give_the_same_photons(monkeypatch):
