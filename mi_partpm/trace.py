@@ -10,13 +10,21 @@ which every photon stored on a surface with a non-delta lobe claims a slot of a 
 buffer (``dr.scatter_inc``) and is written there: one record of :data:`SLOT_FLOATS` floats
 (position, direction code, power, photon index), which Dr.Jit writes as two packet stores
 instead of a scattered store per value (the stores cost a third of the kernel before), and
-its segment count beside it. A lane whose path has ended (absorbed,
-escaped, or ended by Russian roulette) claims the batch's next photon the same way and starts
-it from that photon's own stream, so a SIMD packet does not idle until its longest path ends
-(1.4x faster kernels on the Cornell box than one lane per path, the same photons). Nothing goes to the host during a batch; a
-batch that stores more photons than its buffer holds is traced again with a buffer of the
-right size (the streams are deterministic, so the photons are the same). The result is
-:class:`~mi_partpm.photons.Photons`, on the device.
+its bounce count and rank among its path's stored photons beside it. A lane whose path has
+ended (absorbed, escaped, or ended by Russian roulette) claims the batch's next photon the
+same way and starts it from that photon's own stream, so a SIMD packet does not idle until
+its longest path ends (1.4x faster kernels on the Cornell box than one lane per path, the
+same photons). On the LLVM backend the first packet a thread runs keeps claiming until the
+queue is empty, so a batch is in effect one packet of paths per core.
+
+Nothing goes to the host during a batch. The slots are claimed in whatever order the
+threads run; each path's count of stored photons, its prefix sum and each photon's rank put
+them back in the order of the photons without a sort, so every run gives the same arrays.
+A pilot batch of a sixteenth of a batch measures the photons stored per path first, and the
+later batches size their buffers from it; a batch that stores more photons than its buffer
+holds is traced again with a buffer of the right size (the streams are deterministic, so
+the photons are the same). The result is :class:`~mi_partpm.photons.Photons`, on the
+device.
 """
 from __future__ import annotations
 
@@ -182,11 +190,12 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         Receives a line per batch.
     batch_size : int
         Photon paths traced together at most; more run in batches (same photons). The
-        first batch is a pilot of ``batch_size // 16`` paths (at least 1024) that measures
-        how many photons a path stores, so that later batches size their buffers.
+        first batch is a pilot of ``batch_size // 16`` paths (at least 1024, at most
+        ``batch_size``) that measures how many photons a path stores, so that later
+        batches size their buffers.
     memory_check : callable(stored_per_emitted, traced), optional
-        Called after each batch but the last with the measured photons stored per photon
-        emitted; it may raise to stop before memory runs out.
+        Called after each batch but the last (the pilot batch included) with the measured
+        photons stored per photon emitted; it may raise to stop before memory runs out.
 
     Returns
     -------
@@ -213,7 +222,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     # A pilot batch measures the photons stored per path before full batches size their
     # buffers: a buffer too small for a batch means tracing that batch again (a scene of
     # white walls stores 7 photons per path, the Cornell box 3).
-    pilot = min(n_lanes, max(PILOT_MIN, batch_size // PILOT_SHARE))
+    pilot = min(n_lanes, batch_size, max(PILOT_MIN, batch_size // PILOT_SHARE))
     per_lane = float(min(max_depth, PILOT_GUESS))
     for first in [0, *range(pilot, n_lanes, batch_size)]:
         # Batches only bound the memory: every lane's random stream depends on its (map,
@@ -238,8 +247,9 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     return photons
 
 
-#: The pilot batch: ``batch_size // PILOT_SHARE`` paths, at least ``PILOT_MIN``, with room
-#: for ``PILOT_GUESS`` stored photons per path (at most 47 MB of slots for 2^16 paths).
+#: The pilot batch: ``batch_size // PILOT_SHARE`` paths, at least ``PILOT_MIN`` (at most
+#: ``batch_size``), with room for ``PILOT_GUESS`` stored photons per path (47 MB of slots and
+#: bounce words for the 2^16 paths of the default batch size).
 PILOT_SHARE, PILOT_MIN, PILOT_GUESS = 16, 1024, 16
 
 

@@ -456,7 +456,8 @@ BLOCKS = {b.name: b for b in (
     Block("calibration", ("calibrate",), format_calibrate),
     Block("mpi_prediction", ("scaling_cornell_box",), format_mpi_prediction),
     Block("scaling", ("scaling_cornell_box",), format_scaling),
-    Block("large", large_steps(), format_large),
+    Block("large", large_steps(), format_large,
+          cited=tuple(s for s in large_steps() if "_run" not in s)),
 )}
 
 
