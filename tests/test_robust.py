@@ -120,21 +120,27 @@ def closed_white_box():
                   "intensity": {"type": "rgb", "value": 10.0}}})
 
 
-def test_no_batch_is_traced_twice_where_paths_store_many_photons(monkeypatch):
-    """The pilot batch measures the photons stored per path before the full batches size
-    their buffers, so a scene that stores twice the Cornell box's does not trace a batch
-    again (a buffer too small means tracing that batch again)."""
+def record_tracer_kernels(monkeypatch):
+    """Each tracing kernel's (photons, by rank or sorted), in the order they run."""
     import mi_partpm.trace as trace
     calls = []
     kernel = trace._Run._kernel
 
-    def counted(self, map_id, *rest):
-        calls.append(dr.width(map_id))
-        return kernel(self, map_id, *rest)
-    monkeypatch.setattr(trace._Run, "_kernel", counted)
+    def recorded(self, map_id, lane_index, capacity, ranked):
+        calls.append((dr.width(map_id), ranked))
+        return kernel(self, map_id, lane_index, capacity, ranked)
+    monkeypatch.setattr(trace._Run, "_kernel", recorded)
+    return calls
+
+
+def test_no_batch_is_traced_twice_where_paths_store_many_photons(monkeypatch):
+    """The pilot batch measures the photons stored per path before the full batches size
+    their buffers, so a scene that stores twice the Cornell box's does not trace a batch
+    again (a buffer too small means tracing that batch again)."""
+    calls = record_tracer_kernels(monkeypatch)
     photons = trace_photons(closed_white_box(), 60_000, 2, 0, batch_size=32_000)
     assert len(photons) / 60_000 > 5
-    assert calls == [2000, 32_000, 26_000]
+    assert [width for width, _ in calls] == [2000, 32_000, 26_000]
 
 
 def test_photons_are_put_in_order_by_rank_as_by_a_sort(monkeypatch):
@@ -144,18 +150,14 @@ def test_photons_are_put_in_order_by_rank_as_by_a_sort(monkeypatch):
     sort must give the same arrays."""
     import mi_partpm.trace as trace
     scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
-    ranked = []
-    kernel = trace._Run._kernel
-
-    def seen(self, map_id, lane_index, capacity, by_rank):
-        ranked.append(by_rank)
-        return kernel(self, map_id, lane_index, capacity, by_rank)
-    monkeypatch.setattr(trace._Run, "_kernel", seen)
+    calls = record_tracer_kernels(monkeypatch)
     a = trace_photons(scene, 20_000, 3, 1, batch_size=6000)
+    ranked = [by_rank for _, by_rank in calls]
     assert not any(b is False for b in ranked)
     monkeypatch.setattr(trace, "RANK_SHIFT", 3)
-    ranked.clear()
+    calls.clear()
     b = trace_photons(scene, 20_000, 3, 1, batch_size=6000)
+    ranked = [by_rank for _, by_rank in calls]
     assert ranked.count(False) >= 4 and int(np.asarray(b.bounces).max()) >= 8
     assert_same_photons(a, b)
 

@@ -409,21 +409,20 @@ def format_calibrate(results: dict, step: str = "calibrate") -> str:
 LARGE_RUNS = {"1e7": 3, "1e8": 1}
 
 
-def large_steps() -> tuple:
-    """The step names of the large renders: ``large_SIZE``, then ``large_SIZE_runK``."""
-    return tuple(f"large_{size}" + (f"_run{k + 1}" if k else "")
-                 for size, runs in LARGE_RUNS.items() for k in range(runs))
+def large_steps() -> Dict[str, Tuple[str, ...]]:
+    """Per large size, the step names of its renders: ``large_SIZE``, then
+    ``large_SIZE_runK``."""
+    return {size: tuple(f"large_{size}" + (f"_run{k + 1}" if k else "") for k in range(runs))
+            for size, runs in LARGE_RUNS.items()}
 
 
-def format_large(results: dict, steps=None) -> str:
+def format_large(results: dict) -> str:
     """Large renders in waves (``partpm render --stats-json``): photons, waves, phase times
-    and the measured peak memory per stored photon. A size rendered several times
-    (``large_SIZE_runK``) shows the median of each phase's times and the largest peak."""
-    runs = {}
-    for step in steps or large_steps():
-        runs.setdefault(step.split("_")[1], []).append(results[step])
+    and the measured peak memory per stored photon. A size rendered several times shows the
+    median of each phase's times and the largest peak."""
     rows = []
-    for size, rs in runs.items():
+    for names in large_steps().values():
+        rs = [results[name] for name in names]
         r = rs[0]
         stored = max(int(r["photons_stored"]), 1)
         t = {k: float(statistics.median(x[k] for x in rs))
@@ -456,8 +455,8 @@ BLOCKS = {b.name: b for b in (
     Block("calibration", ("calibrate",), format_calibrate),
     Block("mpi_prediction", ("scaling_cornell_box",), format_mpi_prediction),
     Block("scaling", ("scaling_cornell_box",), format_scaling),
-    Block("large", large_steps(), format_large,
-          cited=tuple(s for s in large_steps() if "_run" not in s)),
+    Block("large", sum(large_steps().values(), ()), format_large,
+          cited=tuple(names[0] for names in large_steps().values())),
 )}
 
 

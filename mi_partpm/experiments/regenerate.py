@@ -188,17 +188,17 @@ def steps(smoke: bool = False) -> list:
     # run, each predicting the other.
     out.append(Step("calibrate", ("calibrate", *PAPER_SCENES, *z["calibrate"],
                                   "--out", "{out}/calibrate"), "calibration.json"))
-    for name in readme.large_steps():
+    for size, names in readme.large_steps().items():
         # Large photon counts in waves of maps: time and peak memory per stored photon. A
         # single render's phase times vary by 15% from run to run on a shared machine, so
         # the size that holds the build-against-trace goal is rendered 3 times
         # (readme.LARGE_RUNS).
-        args = z["large"][name.split("_")[1]]
-        out.append(Step(name, ("render", "cornell_box", *args, "--spp", "1",
-                               "--resolution", "480x480", "--radius-fraction",
-                               "0.01", "-o", f"{{out}}/{name}/cornell_box.exr",
-                               "--stats-json", f"{{out}}/{name}/stats.json"),
-                        "stats.json"))
+        for name in names:
+            out.append(Step(name, ("render", "cornell_box", *z["large"][size], "--spp", "1",
+                                   "--resolution", "480x480", "--radius-fraction", "0.01",
+                                   "-o", f"{{out}}/{name}/cornell_box.exr",
+                                   "--stats-json", f"{{out}}/{name}/stats.json"),
+                            "stats.json"))
     out.append(Step("notebooks", (), "notebooks.json", kind="notebooks",
                     needs=tuple(f"{e}_{s}" for e in ("compare", "speedup", "hwsim")
                                 for s in PAPER_SCENES)))
