@@ -166,7 +166,8 @@ class _Estimator:
 
 def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, active=True,
                 map_range=None, with_stats: bool = False, max_bounce=None,
-                kernel: str = "box", order: str = "morton", lobes=None) -> Flux:
+                kernel: str = "box", order: str = "morton", lobes=None,
+                walk: str = "group") -> Flux:
     """The flux of the photons within ``radius`` of ``si.p`` towards ``si.wi`` (eq. 2).
 
     Parameters
@@ -193,6 +194,9 @@ def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, act
         A density kernel of :data:`KERNELS`.
     order : str
         "morton" (the queries are sorted for the walk) or "given" (the caller sorted them).
+    walk : str
+        "group" (queries side by side walk together) or "own": see
+        :func:`~mi_partpm.kdtree.radius_query`.
     lobes : mi.BSDFFlags, optional
         The BSDF lobes evaluated (:func:`~mi_partpm.eyepath.estimated_lobes`); default all.
     """
@@ -200,7 +204,7 @@ def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, act
     est = _Estimator(maps, si, bsdf, active, radius2, max_bounce, kernel, lobes)
     res = radius_query(maps.forest, si.p, mi.Float(radius), est.contribution, mi.Spectrum,
                        est.active, maps=map_range, with_stats=True, accept=est.accept(),
-                       state=est.lane, order=order)
+                       state=est.lane, order=order, walk=walk)
     total, stats = res
     return est.flux(total, stats.photons_found, est.lane.radius2,
                     stats if with_stats else None)
@@ -221,11 +225,13 @@ def knn_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, k: int, max_ra
 
 
 def radiance_estimate(maps: PhotonMaps, si, bsdf, radius, active=True, map_range=None,
-                      with_stats: bool = False, max_bounce=None, order: str = "morton"):
+                      with_stats: bool = False, max_bounce=None, order: str = "morton",
+                      walk: str = "group"):
     """Reflected radiance towards ``si.wi`` from the photons within ``radius`` of ``si.p``:
-    :func:`gather_flux` over pi r^2. With ``with_stats``, also the traversal counts."""
+    :func:`gather_flux` over pi r^2. With ``with_stats``, also the traversal counts (of the
+    ``walk`` that ran)."""
     est = gather_flux(maps, si, bsdf, radius, active, map_range, with_stats, max_bounce,
-                      order=order)
+                      order=order, walk=walk)
     return (est.radiance(), est.stats) if with_stats else est.radiance()
 
 

@@ -460,3 +460,79 @@ def test_negative_coordinates_split_at_their_exact_medians():
     pts[:2000, 2] = -0.0
     forest = build_forest(pts, leaf_size=8)
     _check_medians(forest, 0, pts, np.zeros(20_000, np.int64))
+
+
+@pytest.mark.parametrize("layout", ["separate", "shared"])
+def test_leaf_boxes_are_the_bounds_of_their_leaves(layout):
+    """Every leaf's box (all its maps' runs) is the exact bounding box of its photons; an
+    empty leaf's box is empty (+inf, -inf), so no ball reaches it."""
+    rng = np.random.default_rng(11)
+    pts = rng.random((3000, 3)).astype(np.float32) * np.array([3, 1, 2], np.float32)
+    ids = rng.integers(0, 5, 3000)
+    ids[ids == 3] = 2                                   # map 3 empty
+    f = build_forest(pts, ids, 5, leaf_size=6, layout=layout)
+    boxes = f.leaf_boxes.numpy().reshape(-1, 8)
+    table = f.leaf_start
+    assert boxes.shape[0] == int((f.internal_count + 1).sum())
+    for t in range(f.tree_count):
+        s, leaves = int(f.tree_map_count[t]), int(f.internal_count[t]) + 1
+        for j in range(leaves):
+            first = table[f.leaf_base[t] + j * s]
+            stop = table[f.leaf_base[t] + (j + 1) * s]
+            box = boxes[f.node_base[t] + t + j]
+            if stop == first:
+                assert np.all(box[:3] == np.inf) and np.all(box[4:7] == -np.inf)
+            else:
+                run = f.points[first:stop]
+                assert np.array_equal(box[:3], run.min(axis=0)), (t, j)
+                assert np.array_equal(box[4:7], run.max(axis=0)), (t, j)
+
+
+def test_queries_that_walk_as_a_group_keep_their_own_balls():
+    """Morton-sorted neighbours walk the trees as groups (one ball around the group's balls)
+    and still find exactly the photons of their own ball: per-query radii from 0 to large,
+    inactive lanes, a query at NaN and one with an infinite radius in the middle of groups,
+    checked against brute force. The groups must really walk together for most lanes."""
+    from mi_partpm.kdtree import radius as radius_module
+    rng = np.random.default_rng(12)
+    pts = rng.random((20_000, 3)).astype(np.float32)
+    pts[:, 2] *= 0.05                                  # photons near a plane, as on a surface
+    q = np.c_[rng.random((9000, 2)) * 0.3, np.full(9000, 0.025)].astype(np.float32)  # a surface
+    r = (0.01 + 0.03 * rng.random(9000)).astype(np.float32)
+    r[::97] = 0.0
+    r[5000] = np.inf
+    q[4001] = np.nan
+    active = np.ones(9000, bool)
+    active[::13] = False
+    forest = build_forest(pts)
+    w = rng.random(20_000).astype(np.float32)
+    wt = mi.Float(w[forest.order])
+    p = mi.Point3f(*[mi.Float(q[:, k]) for k in range(3)])
+    total, stats = radius_query(forest, p, mi.Float(r), lambda i, d2, a, s: dr.gather(
+        mi.Float, wt, i, a), active=mi.Bool(active), with_stats=True)
+    total, found = total.numpy(), stats.photons_found.numpy()
+    d2 = ((q[:, None, :].astype(np.float64) - pts[None, :, :]) ** 2).sum(-1)
+    r64 = r.astype(np.float64)[:, None]
+    inner, outer = d2 <= (r64 * (1 - 1e-5)) ** 2, d2 <= (r64 * (1 + 1e-5)) ** 2
+    inner[~active], outer[~active] = False, False
+    assert np.all(found >= inner.sum(1)) and np.all(found <= outer.sum(1))
+    lo, hi = inner @ w.astype(np.float64), outer @ w.astype(np.float64)
+    tol = 1e-5 * np.maximum(hi, 1)
+    assert np.all(total >= lo - tol) and np.all(total <= hi + tol)
+    assert found[5000] == 20_000 and found[4001] == 0 and found[~active].sum() == 0
+    own, own_stats = radius_query(forest, p, mi.Float(r), lambda i, d2, a, s: dr.gather(
+        mi.Float, wt, i, a), active=mi.Bool(active), with_stats=True, walk="own")
+    assert np.array_equal(own_stats.photons_found.numpy(), found)
+    assert np.allclose(own.numpy(), total, rtol=1e-5, atol=1e-6)
+    # The group's ball tests more photons than the lanes' own balls, never fewer.
+    assert np.all(stats.photons_tested.numpy() >= own_stats.photons_tested.numpy())
+    with pytest.raises(ValueError, match="walk must be one of"):
+        radius_query(forest, p, 0.1, lambda i, d2, a, s: mi.Float(1.0), walk="pairs")
+    # Most lanes of these sorted, close queries walk their group's ball, not their own.
+    order = radius_module.order_queries(p, 9000, "morton")
+    ps = dr.gather(mi.Point3f, p, order)
+    centre, radius = radius_module.group_balls(ps, dr.gather(mi.Float, mi.Float(r), order),
+                                               dr.gather(mi.Bool, mi.Bool(active), order),
+                                               9000)
+    shared = (radius.numpy() > dr.gather(mi.Float, mi.Float(r), order).numpy())
+    assert shared.mean() > 0.5

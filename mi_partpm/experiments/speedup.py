@@ -171,13 +171,16 @@ def time_map(s: _Setup, maps, m: int, radius: float) -> float:
 
 def map_counts(s: _Setup, maps, radius: float):
     """Traversal counts (3, n, Q) of every map and the sum of their partial estimates
-    (Q, 3), untimed (a kernel with more outputs)."""
+    (Q, 3), untimed (a kernel with more outputs). The counts are those of each query's own
+    walk (``walk="own"``): the work of one processing element per query, what hwsim
+    replays, while :func:`time_map` times the walk the integrator runs."""
     n = maps.map_count
     counts = np.zeros((3, n, s.queries), dtype=np.uint32)
     gathered = np.zeros((s.queries, 3))
     for m in range(n):
         L, stats = radiance_estimate(maps, s.si, s.bsdf, radius, s.active,
-                                     map_range=(m, m + 1), with_stats=True, order="given")
+                                     map_range=(m, m + 1), with_stats=True, order="given",
+                                     walk="own")
         dr.eval(L, stats.nodes_visited, stats.photons_tested, stats.photons_found)
         counts[:, m] = [stats.nodes_visited.numpy(), stats.photons_tested.numpy(),
                         stats.photons_found.numpy()]

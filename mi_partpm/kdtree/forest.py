@@ -25,11 +25,13 @@ Everything lives on the device (Dr.Jit arrays of the active variant):
   are one 16-byte load;
 - ``nodes``: 2 floats per internal node, the split value and the split axis (its bits);
 - ``leaf_table``: per tree, the first photon of every leaf (of every map's run of a leaf, in
-  a shared tree) and the tree's end.
+  a shared tree) and the tree's end;
+- ``leaf_boxes``: per leaf, the bounding box of its photons (of all its maps), so a walk
+  skips a leaf its query ball misses without testing a photon.
 
 The build (:func:`build_forest`) sorts the points once per axis on the device (Dr.Jit's radix
 sort), then splits one tree level at a time over all maps at once, with a handful of
-whole-array kernels per level and no host sort. The queries over a forest are in
+whole-array kernels per level and no host sort; one more kernel bounds every leaf. The queries over a forest are in
 :mod:`.radius` and :mod:`.knn`. :func:`tree_bytes` is the one place that counts a tree's bytes.
 """
 from __future__ import annotations
@@ -41,8 +43,8 @@ import mitsuba as mi
 import numpy as np
 
 __all__ = ["Forest", "build_forest", "shared_leaf_size", "morton_codes", "morton_order", "tree_bytes",
-           "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES", "RECORD_FLOATS",
-           "LAYOUTS"]
+           "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES", "LEAF_BOX_BYTES",
+           "RECORD_FLOATS", "LAYOUTS"]
 
 #: Default number of photons per leaf. With the while-while walk of :mod:`.radius` large
 #: leaves pay: on 200,000 Morton-ordered hit points of the Cornell box (r = 1/20, 460 photons
@@ -55,6 +57,9 @@ LEAF_SIZE = 32
 NODE_BYTES = 8
 #: Bytes of one entry of the leaf table (uint32 first photon of a leaf).
 LEAF_ENTRY_BYTES = 4
+#: Bytes of one leaf's bounding box: its lower and upper corners, 4 float32 each (the fourth
+#: unused), so each corner is one 16-byte load.
+LEAF_BOX_BYTES = 32
 #: Floats per photon record: x, y, z and a 32-bit payload.
 RECORD_FLOATS = 4
 
@@ -78,9 +83,11 @@ def tree_depth(counts, leaf_size=LEAF_SIZE) -> np.ndarray:
 
 def tree_bytes(counts, leaf_size: int = LEAF_SIZE) -> np.ndarray:
     """Bytes of the separate tree of a map of ``counts`` photons (per map): ``2**D - 1``
-    internal nodes of :data:`NODE_BYTES` and a leaf table of ``2**D + 1`` entries."""
+    internal nodes of :data:`NODE_BYTES`, a leaf table of ``2**D + 1`` entries and ``2**D``
+    leaf boxes of :data:`LEAF_BOX_BYTES`."""
     depth = tree_depth(counts, leaf_size)
-    return ((1 << depth) - 1) * NODE_BYTES + ((1 << depth) + 1) * LEAF_ENTRY_BYTES
+    return ((1 << depth) - 1) * NODE_BYTES + ((1 << depth) + 1) * LEAF_ENTRY_BYTES + \
+        (1 << depth) * LEAF_BOX_BYTES
 
 
 def shared_leaf_size(leaf_size: int, maps_in_tree) -> np.ndarray:
@@ -111,6 +118,10 @@ class Forest:
         first photon of map m's run of leaf j, and entry ``leaf_base[t] + L_t s`` the end of
         the tree's photons (global tree-order indices): map m's run of leaf j ends where the
         next entry starts. A separate tree has s = 1.
+    leaf_boxes : mi.Float, 8 entries per leaf
+        Leaf j of tree t (leaf ``node_base[t] + t + j`` of the forest: a tree of I internal
+        nodes has I + 1 leaves) is bounded by the lower corner in entries 0-2 of its 8 and the
+        upper corner in entries 4-6 (an empty leaf: +inf and -inf).
     tree_order : mi.UInt32, N entries
         ``records`` entry t holds the caller's photon ``tree_order[t]``.
     node_base, leaf_base, internal_count : (T,) int64 NumPy arrays
@@ -133,6 +144,7 @@ class Forest:
     records: object
     nodes: object
     leaf_table: object
+    leaf_boxes: object
     tree_order: object
     node_base: np.ndarray
     leaf_base: np.ndarray
@@ -167,13 +179,15 @@ class Forest:
 
     @property
     def tree_nbytes(self) -> np.ndarray:
-        """Bytes of each tree: its nodes and its leaf table, photons not included."""
+        """Bytes of each tree: its nodes, its leaf table and its leaf boxes, photons not
+        included."""
         return self.internal_count * NODE_BYTES + \
-            ((self.internal_count + 1) * self.tree_map_count + 1) * LEAF_ENTRY_BYTES
+            ((self.internal_count + 1) * self.tree_map_count + 1) * LEAF_ENTRY_BYTES + \
+            (self.internal_count + 1) * LEAF_BOX_BYTES
 
     @property
     def map_nbytes(self) -> np.ndarray:
-        """Bytes of each map's tree (nodes and leaf table), photons not included; a shared
+        """Bytes of each map's tree (nodes, leaf table, boxes), photons not included; a shared
         tree's bytes are split over its maps by their photons."""
         tree_photons = np.zeros(self.tree_count, dtype=np.int64)
         np.add.at(tree_photons, self.map_tree, self.photon_count)
@@ -184,7 +198,7 @@ class Forest:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of all trees (nodes and leaf tables), photons not included."""
+        """Bytes of all trees (nodes, leaf tables and boxes), photons not included."""
         return int(self.tree_nbytes.sum())
 
     def depth(self, m: int) -> int:
@@ -666,7 +680,8 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     else:
         leaf_start = dr.zeros(mi.UInt32, int(entries.sum()))
     records = _records(p, order, payload)
-    return Forest(records=records, nodes=nodes, leaf_table=leaf_start,
+    boxes = _leaf_boxes(records, leaf_start, leaf_base, leaves, maps_in_tree)
+    return Forest(records=records, nodes=nodes, leaf_table=leaf_start, leaf_boxes=boxes,
                   tree_order=order, node_base=node_base, leaf_base=leaf_base,
                   internal_count=internal, photon_count=counts, leaf_size=int(leaf_size),
                   tree_first_map=first_map, tree_map_count=maps_in_tree, map_tree=map_tree,
@@ -721,6 +736,35 @@ def _shared_leaf_table(order, ids, leaf_first, leaf_tree, leaf_j, leaves, first_
     dr.scatter_reduce(dr.ReduceOp.Add, count, 1, entry)
     dr.eval(order, count)
     return order, dr.prefix_sum(count)
+
+
+@dr.syntax
+def _leaf_boxes(records, leaf_table, leaf_base, leaves, maps_in_tree):
+    """The bounding box of every leaf, tree after tree (:attr:`Forest.leaf_boxes`): one lane
+    per leaf runs over its photons, from the leaf-table entry of its first map's run to the
+    entry of the next leaf's (the tree's closing entry, after its last leaf)."""
+    total = int(leaves.sum())
+    if dr.hint(total == 0, mode="scalar"):
+        return dr.zeros(mi.Float, 8)
+    tree = np.repeat(np.arange(leaves.shape[0]), leaves)
+    j = np.arange(total) - np.repeat(np.cumsum(leaves) - leaves, leaves)
+    entry = leaf_base[tree] + j * maps_in_tree[tree]
+    i = dr.gather(mi.UInt32, leaf_table, mi.UInt32(entry.astype(np.uint32)))
+    end = dr.gather(mi.UInt32, leaf_table, mi.UInt32((entry + maps_in_tree[tree]).astype(
+        np.uint32)))
+    lo = dr.full(mi.Vector4f, dr.inf, total)
+    hi = dr.full(mi.Vector4f, -dr.inf, total)
+    while i < end:
+        rec = dr.gather(mi.Vector4f, records, i)
+        lo = dr.minimum(lo, rec)
+        hi = dr.maximum(hi, rec)
+        i += 1
+    boxes = dr.empty(mi.Float, 8 * total)
+    leaf = dr.arange(mi.UInt32, total)
+    dr.scatter(boxes, mi.Vector4f(lo.x, lo.y, lo.z, 0.0), 2 * leaf)
+    dr.scatter(boxes, mi.Vector4f(hi.x, hi.y, hi.z, 0.0), 2 * leaf + 1)
+    dr.eval(boxes)
+    return boxes
 
 
 def _records(p, order, payload):

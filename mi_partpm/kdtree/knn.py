@@ -1,8 +1,10 @@
 """The k-nearest-neighbour query over a forest: the conventional estimate of eq. (1).
 
 The walk is the stackless while-while traversal of :mod:`.radius`, visiting the nearer child
-first, with a per-lane max-heap of the k best candidates in local memory. Queries are walked
-in Morton order and answered in the caller's.
+first and passing over leaves whose box lies beyond the current radius, with a per-lane
+max-heap of the k best candidates in local memory. Each lane walks with its own ball (its
+radius shrinks as its heap fills, so lanes cannot share one as the fixed-radius walk's do).
+Queries are walked in Morton order and answered in the caller's.
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import mitsuba as mi
 import numpy as np
 
 from .forest import Forest
-from .radius import (QueryStats, coordinate, leaf_run, order_queries, permute,
+from .radius import (QueryStats, coordinate, leaf_reached, leaf_run, order_queries, permute,
                      photon_position, split_of, tree_row, unpermute, walk_start)
 
 __all__ = ["knn_query", "KnnResult", "knn_neighbours"]
@@ -197,9 +199,11 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, walk, neig
                     split, axis = split_of(forest, node_base + node)
                     right = coordinate(p, axis) > split
                     node = 2 * node + 1 + dr.select(right, 1, 0)
-                else:
+                elif leaf_reached(forest, t, node_base, n_int, node, p, r2):
                     at_leaf = mi.Bool(True)
                     searching = mi.Bool(False)
+                else:
+                    going_down = mi.Bool(False)      # passed over, as a subtree the ball misses
             elif node == 0:
                 t += 1
                 if t < stop_u:
