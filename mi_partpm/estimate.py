@@ -194,11 +194,11 @@ def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, act
         A density kernel of :data:`KERNELS`.
     order : str
         "morton" (the queries are sorted for the walk) or "given" (the caller sorted them).
+    lobes : mi.BSDFFlags, optional
+        The BSDF lobes evaluated (:func:`~mi_partpm.eyepath.estimated_lobes`); default all.
     walk : str
         "group" (queries side by side walk together) or "own": see
         :func:`~mi_partpm.kdtree.radius_query`.
-    lobes : mi.BSDFFlags, optional
-        The BSDF lobes evaluated (:func:`~mi_partpm.eyepath.estimated_lobes`); default all.
     """
     radius2 = dr.square(mi.Float(radius))
     est = _Estimator(maps, si, bsdf, active, radius2, max_bounce, kernel, lobes)

@@ -164,16 +164,19 @@ def build_maps(s: _Setup, n: int, leaf_size: int = LEAF_SIZE):
 def time_map(s: _Setup, maps, m: int, radius: float) -> float:
     """Seconds of map ``m`` alone answering every hit point's query (what hwsim models: one
     map, all queries), evaluated and synchronised. The hit points are already in Morton
-    order (first_hits)."""
+    order (first_hits). Each query walks its own ball (``walk="own"``), the walk whose counts
+    :func:`map_counts` records, so that the calibration fits times to the counts of the
+    walk that ran."""
     return timed(lambda: radiance_estimate(maps, s.si, s.bsdf, radius, s.active,
-                                           map_range=(m, m + 1), order="given"))[1]
+                                           map_range=(m, m + 1), order="given",
+                                           walk="own"))[1]
 
 
 def map_counts(s: _Setup, maps, radius: float):
     """Traversal counts (3, n, Q) of every map and the sum of their partial estimates
     (Q, 3), untimed (a kernel with more outputs). The counts are those of each query's own
     walk (``walk="own"``): the work of one processing element per query, what hwsim
-    replays, while :func:`time_map` times the walk the integrator runs."""
+    replays, and the walk :func:`time_map` times."""
     n = maps.map_count
     counts = np.zeros((3, n, s.queries), dtype=np.uint32)
     gathered = np.zeros((s.queries, 3))

@@ -31,8 +31,9 @@ Everything lives on the device (Dr.Jit arrays of the active variant):
 
 The build (:func:`build_forest`) sorts the points once per axis on the device (Dr.Jit's radix
 sort), then splits one tree level at a time over all maps at once, with a handful of
-whole-array kernels per level and no host sort; one more kernel bounds every leaf. The queries over a forest are in
-:mod:`.radius` and :mod:`.knn`. :func:`tree_bytes` is the one place that counts a tree's bytes.
+whole-array kernels per level and no host sort; one more kernel bounds every leaf. The
+queries over a forest are in :mod:`.radius` and :mod:`.knn`. :func:`tree_bytes` is the one
+place that counts a tree's bytes.
 """
 from __future__ import annotations
 

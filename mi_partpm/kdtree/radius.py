@@ -3,7 +3,7 @@
 One lane per query point walks the implicit trees of the maps it is asked for, one tree after
 the other (a tree that several maps share is walked once, and the runs of those maps in each
 leaf it reaches are scanned in turn: :class:`~.forest.Forest`), with no per-lane stack: it
-descends into every child whose half-space the query ball reaches and climbs back through
+descends into every child whose half-space its walking ball reaches and climbs back through
 parents. The walk is "while-while": an inner loop moves
 to the next leaf the ball reaches, a second inner loop tests that leaf's photons, so the lanes
 of a SIMD packet test photons together instead of interleaving node steps and photon tests.
@@ -51,6 +51,11 @@ GROUP_LANES = {"llvm": 8, "cuda": 32}
 #: A group walks together while its ball, around all of its queries' balls, has a radius of
 #: at most this many times the largest of theirs; a wider group's lanes walk on their own.
 GROUP_SPREAD = 2.0
+
+#: A group's radius is widened by this factor, so that the float32 rounding of the distances
+#: it is made of (a few units in the last place) never leaves a member's ball sticking out:
+#: the group's plane and box tests then pass wherever the member's own would.
+GROUP_MARGIN = 1.0 + 2.0 ** -20
 
 
 @dataclass
@@ -132,7 +137,8 @@ def group_balls(p, r, active, width):
     centre = 0.5 * (lo + hi)
     own = dr.gather(mi.Float, r, lane)
     reach = dr.norm(at - dr.gather(mi.Point3f, centre, lane // size)) + own
-    radius = dr.block_reduce(dr.ReduceOp.Max, dr.select(member, reach, 0.0), size)
+    radius = dr.block_reduce(dr.ReduceOp.Max, dr.select(member, reach, 0.0), size) * \
+        GROUP_MARGIN
     largest = dr.block_reduce(dr.ReduceOp.Max, dr.select(member, own, 0.0), size)
     together = (radius <= GROUP_SPREAD * largest) & dr.isfinite(radius)
     group = dr.arange(mi.UInt32, width) // size
