@@ -212,15 +212,15 @@ def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, act
 
 def knn_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, k: int, max_radius=None,
              active=True, with_stats: bool = False, max_bounce=None, kernel: str = "box",
-             order: str = "morton", lobes=None) -> Flux:
+             order: str = "morton", lobes=None, walk: str = "group") -> Flux:
     """The conventional (Jensen) estimate's flux: the k nearest photons, r = distance to the
     k-th. Where fewer than k are found, r is ``max_radius`` as in Jensen's
     ``locate_photons``, or without a cap the distance to the farthest one found. Arguments
-    as for :func:`gather_flux`."""
+    as for :func:`gather_flux`; ``walk`` as for :func:`~mi_partpm.kdtree.knn_query`."""
     est = _Estimator(maps, si, bsdf, active, 0.0, max_bounce, kernel, lobes)
     res = knn_query(maps.forest, si.p, k, est.contribution, mi.Spectrum, max_radius,
                     est.active, with_stats=with_stats, accept=est.accept(), state=est.lane,
-                    order=order)
+                    order=order, walk=walk)
     return est.flux(res.total, res.count, res.radius2, res.stats)
 
 

@@ -273,6 +273,110 @@ def test_knn_rejects_bad_k():
         knn_query(forest, mi.Point3f(0, 0, 0), 0)
 
 
+class _KnnState:
+    """Per-query data for kNN callbacks, permuted with the queries."""
+    DRJIT_STRUCT = {"odd": mi.Bool, "radius2": mi.Float}
+
+
+def _knn_both_walks(forest, q, k, contribution=None, **kw):
+    """knn_query's grouped and own walks on the same queries."""
+    return [knn_query(forest, q, k, contribution, walk=walk, neighbours=True, **kw)
+            for walk in ("group", "own")]
+
+
+def _sorted_neighbours(d2, idx):
+    d2 = np.stack([a.numpy() for a in d2], axis=1)
+    idx = np.stack([a.numpy() for a in idx], axis=1)
+    order = np.lexsort((idx, d2), axis=1)           # equal distances: by index
+    return np.take_along_axis(d2, order, axis=1), np.take_along_axis(idx, order, axis=1)
+
+
+def test_grouped_knn_finds_the_neighbours_of_the_own_walk(monkeypatch):
+    """The grouped kNN (a bound from each group's leader, a walk of that ball in groups, a
+    selection by distance bins, the own walk for the lanes it does not settle) returns what
+    the own walk does, exactly: the same totals, radii, counts and neighbours, and scipy's
+    distances. Queries on the photons' surfaces, more than SORT_FROM so they are sorted and
+    grouped, denser than the photons (as a render's visible points are); a per-lane cap, an
+    accept test that differs per lane, inactive and NaN lanes; then queries too sparse to
+    walk together."""
+    from mi_partpm.kdtree import knn as knn_module
+    rng = np.random.default_rng(21)
+    n, m, k = 30000, 12000, 24
+    pts = np.c_[rng.random((n, 2)), 0.02 * rng.random(n)].astype(np.float32)
+    queries = np.c_[0.4 * rng.random((m, 2)), 0.02 * rng.random(m)].astype(np.float32)
+    queries[5] = np.nan
+    forest = build_forest(pts)
+    q = mi.Point3f(*[mi.Float(queries[:, j]) for j in range(3)])
+    active = mi.Bool(np.arange(m) % 97 != 3)
+    lanes = []
+    real_walk = knn_module._knn_walk
+    monkeypatch.setattr(knn_module, "_knn_walk", lambda f, p, *a: (
+        lanes.append(dr.width(p)), real_walk(f, p, *a))[1])
+
+    def parity(i, a, s):                        # odd lanes accept odd photons only
+        return ~s.odd | ((i & 1) == 1)
+
+    state = _KnnState()
+    cap = mi.Float(np.where(np.arange(m) % 3 == 0, 0.011, np.inf).astype(np.float32))
+    for kw in ({}, {"max_radius": 0.011}, {"max_radius": cap}):
+        lanes.clear()
+        group, own = _knn_both_walks(forest, q, k, lambda i, d2, a, s: mi.Float(d2),
+                                     active=active, **kw)
+        for a, b in zip(group[0].__dict__.values(), own[0].__dict__.values()):
+            if a is not None and not hasattr(a, "nodes_visited"):
+                np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-6)
+        for a, b in zip(_sorted_neighbours(*group[1:]), _sorted_neighbours(*own[1:])):
+            np.testing.assert_array_equal(a, b)
+        # The grouped walk settled most lanes itself: the own walk ran for leaders (one per
+        # group of 8) and for a few others (a ball short of k, or one with more than it keeps).
+        assert lanes[0] == -(-m // 8) and len(lanes) <= 3 and sum(lanes[1:-1]) < 0.2 * m, lanes
+    _check_knn_against_scipy(pts, queries[np.isfinite(queries).all(1)], k)
+    # Queries farther apart than their neighbours (on the whole slab): most walk on their own.
+    sparse = mi.Point3f(*[mi.Float(a) for a in (rng.random(m), rng.random(m),
+                                                 0.02 * rng.random(m))])
+    group, own = _knn_both_walks(forest, sparse, k)
+    for a, b in zip(_sorted_neighbours(*group[1:]), _sorted_neighbours(*own[1:])):
+        np.testing.assert_array_equal(a, b)
+    # An accept test per lane, and a neighbour count per lane that the bins must split.
+    state.odd, state.radius2 = mi.Bool(np.arange(m) % 2 == 1), dr.zeros(mi.Float, m)
+    group, own = _knn_both_walks(forest, q, k, None, accept=parity, state=state)
+    for a, b in zip(_sorted_neighbours(*group[1:]), _sorted_neighbours(*own[1:])):
+        np.testing.assert_array_equal(a, b)
+    # Whatever the bound or the room, the lanes the grouped walk cannot settle are walked on
+    # their own: no room beyond k, or a first ball of only the leader's radius.
+    for name, value in (("KNN_KEEP", 1), ("KNN_REACH", 0.0), ("KNN_BINS", 1)):
+        monkeypatch.setattr(knn_module, name, value)
+        group, own = _knn_both_walks(forest, q, k)
+        for a, b in zip(_sorted_neighbours(*group[1:]), _sorted_neighbours(*own[1:])):
+            np.testing.assert_array_equal(a, b)
+        monkeypatch.undo()
+        monkeypatch.setattr(knn_module, "_knn_walk", lambda f, p, *a: (
+            lanes.append(dr.width(p)), real_walk(f, p, *a))[1])
+
+
+def test_grouped_knn_weighs_by_each_lanes_own_radius():
+    """A contribution that reads ``state.radius2`` (a density kernel) sees each query's own
+    k-th distance in the grouped walk too; and ties (every photon at one point) take k."""
+    rng = np.random.default_rng(22)
+    pts = rng.random((20000, 3)).astype(np.float32)
+    queries = rng.random((9000, 3)).astype(np.float32)
+    forest = build_forest(pts)
+    q = mi.Point3f(*[mi.Float(queries[:, j]) for j in range(3)])
+    state = _KnnState()
+    state.odd, state.radius2 = dr.zeros(mi.Bool, 9000), dr.zeros(mi.Float, 9000)
+    group, own = _knn_both_walks(forest, q, 10, lambda i, d2, a, s: 1 - d2 / s.radius2,
+                                 state=state)
+    np.testing.assert_allclose(group[0].total.numpy(), own[0].total.numpy(), rtol=1e-5)
+    assert (group[0].total.numpy() > 0).all()
+    same = build_forest(np.zeros((300, 3), np.float32))
+    res = knn_query(same, q, 10, lambda i, d2, a, s: mi.Float(1.0))
+    np.testing.assert_array_equal(res.count.numpy(), 10)
+    np.testing.assert_array_equal(res.total.numpy(), 10)
+    np.testing.assert_allclose(res.radius2.numpy(), (queries ** 2).sum(1), rtol=1e-6)
+    with pytest.raises(ValueError, match="walk must be one of 'group', 'own', got 'x'"):
+        knn_query(forest, q, 3, walk="x")
+
+
 def test_morton_order_is_a_permutation_that_keeps_neighbours_together():
     from mi_partpm.kdtree import morton_order
     pts = np.random.default_rng(11).random((5000, 3))

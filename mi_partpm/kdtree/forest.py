@@ -43,9 +43,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["Forest", "build_forest", "shared_leaf_size", "morton_codes", "morton_order", "tree_bytes",
-           "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES", "LEAF_BOX_BYTES",
-           "RECORD_FLOATS", "LAYOUTS"]
+__all__ = ["Forest", "build_forest", "shared_leaf_size", "morton_codes", "morton_order",
+           "tree_bytes", "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES",
+           "LEAF_BOX_BYTES", "RECORD_FLOATS", "LAYOUTS"]
 
 #: Default number of photons per leaf. With the while-while walk of :mod:`.radius` large
 #: leaves pay: on 200,000 Morton-ordered hit points of the Cornell box (r = 1/20, 460 photons
@@ -681,7 +681,9 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     else:
         leaf_start = dr.zeros(mi.UInt32, int(entries.sum()))
     records = _records(p, order, payload)
-    boxes = _leaf_boxes(records, leaf_start, leaf_base, leaves, maps_in_tree)
+    is_leaf = leaf_j < leaves[leaf_tree]                    # not a tree's closing entry
+    boxes = _leaf_boxes(records, leaf_start, leaf_base, leaf_tree[is_leaf], leaf_j[is_leaf],
+                        maps_in_tree)
     return Forest(records=records, nodes=nodes, leaf_table=leaf_start, leaf_boxes=boxes,
                   tree_order=order, node_base=node_base, leaf_base=leaf_base,
                   internal_count=internal, photon_count=counts, leaf_size=int(leaf_size),
@@ -740,15 +742,14 @@ def _shared_leaf_table(order, ids, leaf_first, leaf_tree, leaf_j, leaves, first_
 
 
 @dr.syntax
-def _leaf_boxes(records, leaf_table, leaf_base, leaves, maps_in_tree):
-    """The bounding box of every leaf, tree after tree (:attr:`Forest.leaf_boxes`): one lane
-    per leaf runs over its photons, from the leaf-table entry of its first map's run to the
-    entry of the next leaf's (the tree's closing entry, after its last leaf)."""
-    total = int(leaves.sum())
+def _leaf_boxes(records, leaf_table, leaf_base, tree, j, maps_in_tree):
+    """The bounding box of every leaf, tree after tree (:attr:`Forest.leaf_boxes`; leaf
+    ``j[l]`` of tree ``tree[l]``, as :func:`_leaf_starts` lists them): one lane per leaf runs
+    over its photons, from the leaf-table entry of its first map's run to the entry of the
+    next leaf's (the tree's closing entry, after its last leaf)."""
+    total = int(tree.shape[0])
     if dr.hint(total == 0, mode="scalar"):
         return dr.zeros(mi.Float, 8)
-    tree = np.repeat(np.arange(leaves.shape[0]), leaves)
-    j = np.arange(total) - np.repeat(np.cumsum(leaves) - leaves, leaves)
     entry = leaf_base[tree] + j * maps_in_tree[tree]
     i = dr.gather(mi.UInt32, leaf_table, mi.UInt32(entry.astype(np.uint32)))
     end = dr.gather(mi.UInt32, leaf_table, mi.UInt32((entry + maps_in_tree[tree]).astype(

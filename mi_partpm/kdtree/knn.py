@@ -1,9 +1,13 @@
 """The k-nearest-neighbour query over a forest: the conventional estimate of eq. (1).
 
-The walk is the stackless while-while traversal of :mod:`.radius`, visiting the nearer child
-first and passing over leaves whose box lies beyond the current radius, with a per-lane
-max-heap of the k best candidates in local memory. Each lane walks with its own ball (its
-radius shrinks as its heap fills, so lanes cannot share one as the fixed-radius walk's do).
+Two walks find the same neighbours. The own walk is the stackless while-while traversal of
+:mod:`.radius`, visiting the nearer child first and passing over leaves whose box lies beyond
+the current radius, with a per-lane max-heap of the k best candidates in local memory; each
+lane walks alone, its radius shrinking as its heap fills. The grouped walk (the default)
+gives the lanes of a packet one ball to share: a leader per group makes the own walk, its
+k-th distance bounds its neighbours' first balls, the group walks those balls as the
+fixed-radius query does while each lane keeps the photons inside its own, and a count per
+distance bin picks the k nearest of those; lanes it cannot settle so walk on their own.
 Queries are walked in Morton order and answered in the caller's.
 """
 from __future__ import annotations
@@ -15,10 +19,33 @@ import mitsuba as mi
 import numpy as np
 
 from .forest import Forest
-from .radius import (QueryStats, coordinate, leaf_reached, leaf_run, order_queries, permute,
+from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, coordinate,
+                     group_balls, group_lanes, leaf_reached, leaf_run, order_queries, permute,
                      photon_position, split_of, tree_row, unpermute, walk_start)
 
-__all__ = ["knn_query", "KnnResult", "knn_neighbours"]
+__all__ = ["knn_query", "KnnResult", "knn_neighbours", "KNN_KEEP", "KNN_REACH", "KNN_SPREAD",
+           "KNN_BINS"]
+
+#: The grouped walk keeps up to this many times k of the photons within a lane's bound; a
+#: lane that finds more is walked again on its own.
+KNN_KEEP = 4
+
+#: A member's ball in the grouped walk: a leader's k-th distance plus this share of the way
+#: to it. With 1 the ball surely holds k photons (the triangle inequality); less usually does
+#: too and holds fewer photons to sort, and a lane whose ball holds fewer than k walks again
+#: on its own.
+KNN_REACH = 0.5
+
+#: A lane whose first ball in the grouped walk is wider than this many times its leader's
+#: k-th distance walks on its own straight away: its group's queries lie farther apart than
+#: their neighbours, and its ball would hold too many photons to sort. (On the bench's
+#: workloads 2 was faster than 1.5 and 3, and not slower than the own walk on queries ten
+#: times sparser.)
+KNN_SPREAD = 2.0
+
+#: Distance bins of the grouped walk's selection: the k-th distance's bin is found by
+#: counting, and only that bin's photons go through a heap.
+KNN_BINS = 32
 
 
 @dataclass
@@ -47,7 +74,8 @@ class KnnResult:
 
 def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
               max_radius=None, active=True, maps=None, with_stats: bool = False,
-              neighbours: bool = False, accept=None, state=None, order: str = "morton"):
+              neighbours: bool = False, accept=None, state=None, order: str = "morton",
+              walk: str = "group"):
     """The ``k`` photons nearest to each query point, and the sum of their contributions.
 
     Parameters
@@ -82,6 +110,10 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     neighbours : bool
         Also return the neighbours: two lists of k arrays, squared distances and tree-order
         indices; unused entries hold ``inf`` and ``0xFFFFFFFF``.
+    walk : str
+        "group" (default): a bound first, then a fixed-radius walk in groups and a selection
+        (see Notes); "own": each lane walks alone with its shrinking heap (what one query
+        alone runs). Both find the same neighbours.
 
     Returns
     -------
@@ -90,15 +122,27 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
 
     Notes
     -----
-    The walk is the stackless traversal of :func:`~.radius.radius_query`, visiting the nearer
-    child
-    first, with a per-lane max-heap of the k best candidates in local memory. The search
-    radius starts at ``max_radius`` and shrinks to the heap's largest distance once it holds
-    k photons, so far subtrees are skipped as in Jensen's ``locate_photons``. Photons at
-    exactly the current radius are not taken once the heap is full (the first found stays).
+    The own walk is the stackless traversal of :func:`~.radius.radius_query`, visiting the
+    nearer child first, with a per-lane max-heap of the k best candidates in local memory.
+    The search radius starts at ``max_radius`` and shrinks to the heap's largest distance
+    once it holds k photons, so far subtrees are skipped as in Jensen's ``locate_photons``.
+    Photons at exactly the current radius are not taken once the heap is full (the first
+    found stays).
+
+    The grouped walk (:func:`_knn_grouped`) gives the lanes a ball to share. One query per
+    group (:data:`~.radius.GROUP_LANES` side by side in walking order) makes the own walk;
+    its k-th distance plus a member's distance to it bounds that member's k-th distance (the
+    triangle inequality). Every member then walks the fixed ball of its bound with the
+    group, as :func:`~.radius.radius_query` does, and keeps the photons inside; counting them
+    in :data:`KNN_BINS` distance bins finds the bin of the k-th, and a heap sorts only that
+    bin. A lane whose bound holds fewer than k photons (below its cap) or more than
+    :data:`KNN_KEEP` x k walks again on its own, so the neighbours are exact either way.
     """
     if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
         raise ValueError(f"k must be an integer >= 1, got {k!r}")
+    if walk not in WALKS:
+        raise ValueError(f"walk must be one of {', '.join(repr(w) for w in WALKS)}, got "
+                         f"{walk!r}")
     result_type = mi.Float if result_type is None else result_type
     width = dr.width(p)
     if max_radius is None:
@@ -120,10 +164,10 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
     if not isinstance(r2max, float):
         r2max = permute(dr.zeros(mi.Float, width) + r2max, perm, width)
-    res, d2, idx = _knn_walk(forest, permute(p, perm, width), int(k), contribution,
-                             result_type, r2max, permute(active, perm, width),
-                             forest.walk_table(maps), neighbours, accept,
-                             permute(state, perm, width))
+    run = _knn_grouped if walk == "group" else _knn_walk
+    res, d2, idx = run(forest, permute(p, perm, width), int(k), contribution, result_type,
+                       r2max, permute(active, perm, width), forest.walk_table(maps),
+                       neighbours, accept, permute(state, perm, width))
     res = KnnResult(*[unpermute(v, perm, width) for v in (res.total, res.radius2, res.count)],
                     QueryStats(*[unpermute(v, perm, width) for v in (
                         res.stats.nodes_visited, res.stats.photons_tested,
@@ -135,8 +179,9 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
 
 
 @dr.syntax
-def _heap_insert(heap_d, heap_i, count, ku, d2, i, push, replace):
-    """Put ``(d2, i)`` into each lane's max-heap of k entries (``count`` of them used).
+def _heap_insert(heap_d, heap_i, count, ku, d2, i, push, replace, base=0):
+    """Put ``(d2, i)`` into each lane's max-heap of ``ku`` entries (``count`` of them used),
+    held in the local arrays from entry ``base`` on.
 
     ``push``: the heap has room, sift up from the end; ``replace``: the new entry replaces the
     root (the farthest), sift down from it. Each moves parents (children) over the hole until
@@ -148,25 +193,25 @@ def _heap_insert(heap_d, heap_i, count, ku, d2, i, push, replace):
     while moving:
         up_parent = (pos - 1) >> 1
         up = push & (pos > 0)
-        parent_d = heap_d.read(up_parent, up)
+        parent_d = heap_d.read(base + up_parent, up)
         up = up & (parent_d < d2)
         child = 2 * pos + 1
         down = replace & (child < ku)
-        child_d = heap_d.read(child, down)
+        child_d = heap_d.read(base + child, down)
         has_second = down & (child + 1 < ku)
-        second_d = heap_d.read(child + 1, has_second)
+        second_d = heap_d.read(base + child + 1, has_second)
         second = has_second & (second_d > child_d)
         child = dr.select(second, child + 1, child)
         child_d = dr.select(second, second_d, child_d)
         down = down & (child_d > d2)
         source = dr.select(up, up_parent, child)
         move = moving & (up | down)
-        heap_d.write(heap_d.read(source, move), pos, move)
-        heap_i.write(heap_i.read(source, move), pos, move)
+        heap_d.write(heap_d.read(base + source, move), base + pos, move)
+        heap_i.write(heap_i.read(base + source, move), base + pos, move)
         pos = dr.select(move, source, pos)
         moving = move
-    heap_d.write(d2, pos, take)
-    heap_i.write(i, pos, take)
+    heap_d.write(d2, base + pos, take)
+    heap_i.write(i, base + pos, take)
 
 
 @dr.syntax
@@ -241,21 +286,207 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, walk, neig
         # No cap: fewer than k photons exist, and r is the distance to the farthest found
         # (the heap's root), as Jensen's estimate with fewer than k photons has it.
         r2 = dr.select(count < ku, dr.select(count > 0, heap_d.read(0, count > 0), 0.0), r2)
+    stats = QueryStats(nodes_visited, photons_tested, mi.UInt32(count))
+    return _answer(heap_d, heap_i, count, r2, stats, k, contribution, result_type,
+                   neighbours, state)
+
+
+@dr.syntax
+def _answer(near_d, near_i, count, r2, stats, k, contribution, result_type, neighbours,
+            state):
+    """The walks' result from the ``count`` neighbours in the local arrays ``near_d``,
+    ``near_i``: (KnnResult, dist2 list, index list)."""
+    width = dr.width(count)
     total = dr.zeros(result_type, width)
     if dr.hint(hasattr(state, "radius2"), mode="scalar"):
         # The callbacks see each query's final radius (a density kernel weighs by it).
         state.radius2 = mi.Float(r2)
     if dr.hint(contribution is not None, mode="scalar"):
-        j = mi.UInt32(0)
+        j = dr.zeros(mi.UInt32, width)
         while j < count:
-            total += contribution(heap_i.read(j, j < count), heap_d.read(j, j < count),
+            total += contribution(near_i.read(j, j < count), near_d.read(j, j < count),
                                   mi.Bool(True), state)
             j += 1
-    res = KnnResult(total, r2, count, QueryStats(nodes_visited, photons_tested,
-                                                 mi.UInt32(count)))
-    # The heap's entries are read only when asked for (k lazy variables each otherwise).
-    dist2 = [heap_d.read(j) for j in range(k)] if neighbours else None
-    index = [heap_i.read(j) for j in range(k)] if neighbours else None
+    res = KnnResult(total, r2, count, stats)
+    # The entries are read only when asked for (k lazy variables each otherwise).
+    dist2 = [near_d.read(j) for j in range(k)] if neighbours else None
+    index = [near_i.read(j) for j in range(k)] if neighbours else None
+    return res, dist2, index
+
+
+def _bin(d2, scale):
+    """The selection's distance bin of the squared distances ``d2``."""
+    return mi.UInt32(dr.minimum(d2 * scale, KNN_BINS - 1))
+
+
+def _kth_bin(kept_d, kept, scale, k):
+    """The bin of the k-th smallest of each lane's ``kept`` squared distances, and how many
+    lie in the bins before it; (KNN_BINS, all of them) where fewer than k were kept. The
+    counts are kept in registers (a local array indexed per lane costs a scatter each)."""
+    width = dr.width(kept)
+
+    def body(j, counts):
+        b = _bin(kept_d.read(j, j < kept), scale)
+        return j + 1, tuple(c + dr.select(b == u, 1, 0) for u, c in enumerate(counts))
+
+    _, counts = dr.while_loop(
+        (dr.zeros(mi.UInt32, width), tuple(dr.zeros(mi.UInt32, width)
+                                           for _ in range(KNN_BINS))),
+        lambda j, counts: j < kept, body, label="partpm_knn_bins")
+    star = dr.full(mi.UInt32, KNN_BINS, width)
+    below = dr.zeros(mi.UInt32, width)
+    before = dr.zeros(mi.UInt32, width)
+    for u, c in enumerate(counts):
+        here = (star == KNN_BINS) & (before + c >= k)
+        star = dr.select(here, u, star)
+        below = dr.select(here, before, below)
+        before += c
+    return star, dr.select(star == KNN_BINS, before, below)
+
+
+@dr.syntax
+def _select(kept_d, kept_i, found, keep, walk2, k, capped, cap2, contribution, result_type,
+            neighbours, state):
+    """The k nearest of the photons a lane kept (``found`` of them within ``walk2``, the
+    first ``keep`` kept), and the result: counts per distance bin find the k-th's bin
+    (:func:`_kth_bin`); a heap takes the nearest of that bin's photons, the bins before it
+    are all taken. Returns (KnnResult without stats, dist2 list, index list), the lists (with
+    ``neighbours``) the bins before in their order, then the heap."""
+    width = dr.width(found)
+    kept = dr.minimum(found, keep)
+    scale = dr.select(walk2 > 0, KNN_BINS / walk2, 0.0)
+    star, below = _kth_bin(kept_d, kept, scale, k)
+    room = dr.select(star < KNN_BINS, k - below, 0)
+    near_d = dr.alloc_local(mi.Float, k, dr.full(mi.Float, dr.inf, width))
+    near_i = dr.alloc_local(mi.UInt32, k, dr.full(mi.UInt32, 0xFFFFFFFF, width))
+    heaped = dr.zeros(mi.UInt32, width)
+    j = dr.zeros(mi.UInt32, width)
+    while (j < kept) & (star < KNN_BINS):
+        d2 = kept_d.read(j)
+        if _bin(d2, scale) == star:
+            push = heaped < room
+            replace = ~push & (d2 < near_d.read(dr.minimum(below, k - 1)))
+            _heap_insert(near_d, near_i, heaped, room, d2, kept_i.read(j), push, replace,
+                         below)
+            heaped = dr.select(push, heaped + 1, heaped)
+        j += 1
+    count = below + heaped
+    r2 = dr.select(star < KNN_BINS, near_d.read(dr.minimum(below, k - 1)),
+                   cap2 if capped else dr.zeros(mi.Float, width))
+    if dr.hint(hasattr(state, "radius2"), mode="scalar"):
+        state.radius2 = mi.Float(r2)            # what a density kernel weighs by
+    total = dr.zeros(result_type, width)
+    taken = dr.zeros(mi.UInt32, width)
+    j = dr.zeros(mi.UInt32, width)
+    while j < kept:
+        d2 = kept_d.read(j)
+        if _bin(d2, scale) < star:
+            i = kept_i.read(j)
+            if dr.hint(contribution is not None, mode="scalar"):
+                total += contribution(i, d2, mi.Bool(True), state)
+            if dr.hint(neighbours, mode="scalar"):
+                near_d.write(d2, taken)
+                near_i.write(i, taken)
+                taken += 1
+        j += 1
+    if dr.hint(contribution is not None, mode="scalar"):
+        j = mi.UInt32(below)
+        while j < count:
+            total += contribution(near_i.read(j), near_d.read(j), mi.Bool(True), state)
+            j += 1
+    dist2 = [near_d.read(j) for j in range(k)] if neighbours else None
+    index = [near_i.read(j) for j in range(k)] if neighbours else None
+    return KnnResult(total, r2, count), dist2, index
+
+
+def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, neighbours,
+                 accept, state):
+    """The grouped walk of :func:`knn_query` (its Notes): a bound from each group's leader,
+    a fixed-radius walk in groups that keeps the photons within it, a selection, and the
+    own walk for the lanes it did not settle. Returns what :func:`_knn_walk` does."""
+    width = dr.width(p)
+    size = group_lanes(p)
+    capped = not isinstance(r2max, float)
+    cap2 = dr.zeros(mi.Float, width) + r2max
+    finite = dr.isfinite(p.x) & dr.isfinite(p.y) & dr.isfinite(p.z)
+
+    # The leaders: the first active lane with a finite point of each group; their own walk.
+    groups = -(-width // size)
+    lane = dr.arange(mi.UInt32, groups * size)
+    usable = dr.gather(mi.Bool, active & finite, dr.minimum(lane, width - 1)) & (lane < width)
+    first = dr.block_reduce(dr.ReduceOp.Min, dr.select(usable, lane, 0xFFFFFFFF), size)
+    led = first < width
+    leader = dr.minimum(first, width - 1)
+    lead, _, _ = _knn_walk(forest, dr.gather(mi.Point3f, p, leader), k, None, mi.Float,
+                           dr.gather(mi.Float, r2max, leader) if capped else r2max, led,
+                           walk, False, accept, permute(state, leader, width))
+    full = led & (lead.count >= k)             # its radius is a k-th distance
+    dr.eval(lead.radius2, full, lead.stats.nodes_visited, lead.stats.photons_tested)
+
+    # Each member's first ball: a leader's k-th distance plus a share of the way to it, the
+    # least of its group's leader and those of the groups on either side (leaders that found
+    # k), or its cap where that is less. A lane whose ball is more than KNN_SPREAD times
+    # that leader's radius walks on its own straight away; a ball at the cap is walked as
+    # it is.
+    g = dr.arange(mi.UInt32, width) // size
+    lead_r = dr.sqrt(lead.radius2)
+    bound = dr.full(mi.Float, dr.inf, width)
+    near_r = dr.zeros(mi.Float, width)
+    for h in (g, dr.maximum(g, 1) - 1, dr.minimum(g + 1, groups - 1)):
+        r_h = dr.gather(mi.Float, lead_r, h)
+        via = r_h + KNN_REACH * dr.norm(p - dr.gather(mi.Point3f, p,
+                                                        dr.gather(mi.UInt32, leader, h)))
+        better = dr.gather(mi.Bool, full, h) & (via < bound)
+        bound = dr.select(better, via, bound)
+        near_r = dr.select(better, r_h, near_r)
+    bound *= GROUP_MARGIN
+    at = dr.gather(mi.UInt32, leader, g)
+    walk2 = dr.minimum(dr.square(bound), cap2)
+    at_cap = dr.square(bound) >= cap2
+    grouped = active & finite & dr.isfinite(walk2) & \
+        (at_cap | (walk2 <= dr.square(KNN_SPREAD * near_r)))
+    ball = group_balls(p, dr.sqrt(walk2) * GROUP_MARGIN, grouped, width)
+
+    # The walk of the bound, in groups, keeping the photons inside; the selection.
+    keep = KNN_KEEP * k
+    kept_d = dr.alloc_local(mi.Float, keep)
+    kept_i = dr.alloc_local(mi.UInt32, keep)
+    _, walked = _walk(forest, p, walk2, ball, None, mi.Float, grouped, walk, True, accept,
+                      state, collect=(kept_d, kept_i))
+    found = walked.photons_found
+    res, dist2, index = _select(kept_d, kept_i, found, keep, walk2, k, capped, cap2,
+                                contribution, result_type, neighbours, state)
+    settled = grouped & (found <= keep) & ((found >= k) | at_cap)
+    res.count = dr.select(settled, res.count, 0)
+    own = at == dr.arange(mi.UInt32, width)
+    stats = QueryStats(
+        walked.nodes_visited + dr.select(own, dr.gather(mi.UInt32, lead.stats.nodes_visited,
+                                                        g), 0),
+        walked.photons_tested + dr.select(own, dr.gather(mi.UInt32,
+                                                         lead.stats.photons_tested, g), 0),
+        res.count)
+    res.stats = stats
+    rest = active & ~settled
+    dr.eval(res.total, res.radius2, res.count, stats.nodes_visited, stats.photons_tested,
+            rest, dist2, index)
+
+    # The lanes it did not settle: their own walk.
+    lanes = dr.compress(rest)
+    if dr.width(lanes) > 0:
+        alone, d2b, ib = _knn_walk(forest, dr.gather(mi.Point3f, p, lanes), k, contribution,
+                                   result_type, dr.gather(mi.Float, r2max, lanes) if capped
+                                   else r2max, dr.full(mi.Bool, True, dr.width(lanes)), walk,
+                                   neighbours, accept, permute(state, lanes, width))
+        dr.scatter(res.total, alone.total, lanes)
+        dr.scatter(res.radius2, alone.radius2, lanes)
+        dr.scatter(res.count, alone.count, lanes)
+        dr.scatter_add(stats.nodes_visited, alone.stats.nodes_visited, lanes)
+        dr.scatter_add(stats.photons_tested, alone.stats.photons_tested, lanes)
+        stats.photons_found = res.count
+        for mine, theirs in zip((dist2 or []) + (index or []), (d2b or []) + (ib or [])):
+            dr.scatter(mine, theirs, lanes)
+        dr.eval(res.total, res.radius2, res.count, stats.nodes_visited,
+                stats.photons_tested, dist2, index)
     return res, dist2, index
 
 
