@@ -401,9 +401,10 @@ def _select(kept_d, kept_i, found, keep, walk2, k, capped, cap2, contribution, r
 
 def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, neighbours,
                  accept, state):
-    """The grouped walk of :func:`knn_query` (its Notes): a bound from each group's leader,
-    a fixed-radius walk in groups that keeps the photons within it, a selection, and the
-    own walk for the lanes it did not settle. Returns what :func:`_knn_walk` does."""
+    """The grouped walk of :func:`knn_query` (its Notes): each group's leader walks on its
+    own (its answer is final), a bound from the leaders, a fixed-radius walk in groups that
+    keeps the photons within it, a selection, and the own walk for the lanes it did not
+    settle. Returns what :func:`_knn_walk` does."""
     width = dr.width(p)
     size = group_lanes(p)
     capped = not isinstance(r2max, float)
@@ -417,11 +418,11 @@ def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, n
     first = dr.block_reduce(dr.ReduceOp.Min, dr.select(usable, lane, 0xFFFFFFFF), size)
     led = first < width
     leader = dr.minimum(first, width - 1)
-    lead, _, _ = _knn_walk(forest, dr.gather(mi.Point3f, p, leader), k, None, mi.Float,
-                           dr.gather(mi.Float, r2max, leader) if capped else r2max, led,
-                           walk, False, accept, permute(state, leader, width))
-    full = led & (lead.count >= k)             # its radius is a k-th distance
-    dr.eval(lead.radius2, full, lead.stats.nodes_visited, lead.stats.photons_tested)
+    lead = _knn_walk(forest, dr.gather(mi.Point3f, p, leader), k, contribution, result_type,
+                     dr.gather(mi.Float, r2max, leader) if capped else r2max, led, walk,
+                     neighbours, accept, permute(state, leader, width))
+    full = led & (lead[0].count >= k)             # its radius is a k-th distance
+    dr.eval(lead, full)
 
     # Each member's first ball: a leader's k-th distance plus a share of the way to it, the
     # least of its group's leader and those of the groups on either side (leaders that found
@@ -429,7 +430,7 @@ def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, n
     # that leader's radius walks on its own straight away; a ball at the cap is walked as
     # it is.
     g = dr.arange(mi.UInt32, width) // size
-    lead_r = dr.sqrt(lead.radius2)
+    lead_r = dr.sqrt(lead[0].radius2)
     bound = dr.full(mi.Float, dr.inf, width)
     near_r = dr.zeros(mi.Float, width)
     for h in (g, dr.maximum(g, 1) - 1, dr.minimum(g + 1, groups - 1)):
@@ -440,10 +441,11 @@ def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, n
         bound = dr.select(better, via, bound)
         near_r = dr.select(better, r_h, near_r)
     bound *= GROUP_MARGIN
-    at = dr.gather(mi.UInt32, leader, g)
+    is_leader = (dr.gather(mi.UInt32, leader, g) == dr.arange(mi.UInt32, width)) & \
+        dr.gather(mi.Bool, led, g)
     walk2 = dr.minimum(dr.square(bound), cap2)
     at_cap = dr.square(bound) >= cap2
-    grouped = active & finite & dr.isfinite(walk2) & \
+    grouped = active & finite & ~is_leader & dr.isfinite(walk2) & \
         (at_cap | (walk2 <= dr.square(KNN_SPREAD * near_r)))
     ball = group_balls(p, dr.sqrt(walk2) * GROUP_MARGIN, grouped, width)
 
@@ -458,36 +460,38 @@ def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, n
                                 contribution, result_type, neighbours, state)
     settled = grouped & (found <= keep) & ((found >= k) | at_cap)
     res.count = dr.select(settled, res.count, 0)
-    own = at == dr.arange(mi.UInt32, width)
-    stats = QueryStats(
-        walked.nodes_visited + dr.select(own, dr.gather(mi.UInt32, lead.stats.nodes_visited,
-                                                        g), 0),
-        walked.photons_tested + dr.select(own, dr.gather(mi.UInt32,
-                                                         lead.stats.photons_tested, g), 0),
-        res.count)
-    res.stats = stats
-    rest = active & ~settled
-    dr.eval(res.total, res.radius2, res.count, stats.nodes_visited, stats.photons_tested,
-            rest, dist2, index)
+    res.stats = QueryStats(walked.nodes_visited, walked.photons_tested, res.count)
+    rest = active & ~settled & ~is_leader
+    dr.eval(res.total, res.radius2, res.count, res.stats.nodes_visited,
+            res.stats.photons_tested, rest, dist2, index)
 
-    # The lanes it did not settle: their own walk.
+    # The leaders' answers, and the own walk of the lanes the group walk did not settle.
+    heads = dr.compress(led)
+    _put((res, dist2, index), lead, dr.gather(mi.UInt32, leader, heads), heads)
     lanes = dr.compress(rest)
     if dr.width(lanes) > 0:
-        alone, d2b, ib = _knn_walk(forest, dr.gather(mi.Point3f, p, lanes), k, contribution,
-                                   result_type, dr.gather(mi.Float, r2max, lanes) if capped
-                                   else r2max, dr.full(mi.Bool, True, dr.width(lanes)), walk,
-                                   neighbours, accept, permute(state, lanes, width))
-        dr.scatter(res.total, alone.total, lanes)
-        dr.scatter(res.radius2, alone.radius2, lanes)
-        dr.scatter(res.count, alone.count, lanes)
-        dr.scatter_add(stats.nodes_visited, alone.stats.nodes_visited, lanes)
-        dr.scatter_add(stats.photons_tested, alone.stats.photons_tested, lanes)
-        stats.photons_found = res.count
-        for mine, theirs in zip((dist2 or []) + (index or []), (d2b or []) + (ib or [])):
-            dr.scatter(mine, theirs, lanes)
-        dr.eval(res.total, res.radius2, res.count, stats.nodes_visited,
-                stats.photons_tested, dist2, index)
+        _put((res, dist2, index), _knn_walk(
+            forest, dr.gather(mi.Point3f, p, lanes), k, contribution, result_type,
+            dr.gather(mi.Float, r2max, lanes) if capped else r2max,
+            dr.full(mi.Bool, True, dr.width(lanes)), walk, neighbours, accept,
+            permute(state, lanes, width)), lanes)
+    res.stats.photons_found = res.count
     return res, dist2, index
+
+
+def _put(into, other, lanes, rows=None):
+    """Write the answers ``other`` (a walk's (KnnResult, dist2, index)), its entries
+    ``rows`` (default: all), into the lanes ``lanes`` of ``into``; the counts add up."""
+    (res, dist2, index), (theirs, d2, idx) = into, other
+    pick = (lambda v: v) if rows is None else (lambda v: dr.gather(type(v), v, rows))
+    for name in ("total", "radius2", "count"):
+        dr.scatter(getattr(res, name), pick(getattr(theirs, name)), lanes)
+    dr.scatter_add(res.stats.nodes_visited, pick(theirs.stats.nodes_visited), lanes)
+    dr.scatter_add(res.stats.photons_tested, pick(theirs.stats.photons_tested), lanes)
+    for mine, value in zip((dist2 or []) + (index or []), (d2 or []) + (idx or [])):
+        dr.scatter(mine, pick(value), lanes)
+    dr.eval(res.total, res.radius2, res.count, res.stats.nodes_visited,
+            res.stats.photons_tested, dist2, index)
 
 
 def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
