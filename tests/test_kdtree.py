@@ -291,88 +291,105 @@ def _sorted_neighbours(d2, idx):
     return np.take_along_axis(d2, order, axis=1), np.take_along_axis(idx, order, axis=1)
 
 
+def _assert_same_answers(group, own):
+    """The same total (to float rounding of the order summed), radius, count and
+    neighbours."""
+    (g, *g_lists), (o, *o_lists) = group, own
+    np.testing.assert_allclose(g.total.numpy(), o.total.numpy(), rtol=1e-5, atol=1e-9)
+    np.testing.assert_array_equal(g.radius2.numpy(), o.radius2.numpy())
+    np.testing.assert_array_equal(g.count.numpy(), o.count.numpy())
+    for a, b in zip(_sorted_neighbours(*g_lists), _sorted_neighbours(*o_lists)):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_grouped_knn_finds_the_neighbours_of_the_own_walk(monkeypatch):
     """The grouped kNN (a bound from each group's leader, a walk of that ball in groups, a
     selection by distance bins, the own walk for the lanes it does not settle) returns what
     the own walk does, exactly: the same totals, radii, counts and neighbours, and scipy's
     distances. Queries on the photons' surfaces, more than SORT_FROM so they are sorted and
-    grouped, denser than the photons (as a render's visible points are); a per-lane cap, an
-    accept test that differs per lane, inactive and NaN lanes; then queries too sparse to
-    walk together."""
+    grouped, denser than the photons (as a render's visible points are), a count that leaves
+    the last group short; a scalar and a per-lane cap, an accept test that differs per lane,
+    inactive and NaN lanes, a range of maps; then queries too sparse to walk together."""
     from mi_partpm.kdtree import knn as knn_module
     rng = np.random.default_rng(21)
-    n, m, k = 30000, 12000, 24
+    n, m, k = 30000, 12003, 24
     pts = np.c_[rng.random((n, 2)), 0.02 * rng.random(n)].astype(np.float32)
     queries = np.c_[0.4 * rng.random((m, 2)), 0.02 * rng.random(m)].astype(np.float32)
     queries[5] = np.nan
-    forest = build_forest(pts)
+    forest = build_forest(pts, rng.integers(0, 3, n), 3)
     q = mi.Point3f(*[mi.Float(queries[:, j]) for j in range(3)])
     active = mi.Bool(np.arange(m) % 97 != 3)
     lanes = []
     real_walk = knn_module._knn_walk
-    monkeypatch.setattr(knn_module, "_knn_walk", lambda f, p, *a: (
-        lanes.append(dr.width(p)), real_walk(f, p, *a))[1])
+
+    def spy(f, p, *a):                          # the widths the own walk runs at
+        lanes.append(dr.width(p))
+        return real_walk(f, p, *a)
+    monkeypatch.setattr(knn_module, "_knn_walk", spy)
 
     def parity(i, a, s):                        # odd lanes accept odd photons only
         return ~s.odd | ((i & 1) == 1)
 
     state = _KnnState()
+    state.odd, state.radius2 = mi.Bool(np.arange(m) % 2 == 1), dr.zeros(mi.Float, m)
     cap = mi.Float(np.where(np.arange(m) % 3 == 0, 0.011, np.inf).astype(np.float32))
-    for kw in ({}, {"max_radius": 0.011}, {"max_radius": cap}):
+    for kw in ({}, {"max_radius": 0.011}, {"max_radius": cap}, {"maps": (1, 3)},
+               {"accept": parity, "state": state}):
         lanes.clear()
         group, own = _knn_both_walks(forest, q, k, lambda i, d2, a, s: mi.Float(d2),
-                                     active=active, **kw)
-        for a, b in zip(group[0].__dict__.values(), own[0].__dict__.values()):
-            if a is not None and not hasattr(a, "nodes_visited"):
-                np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-6)
-        for a, b in zip(_sorted_neighbours(*group[1:]), _sorted_neighbours(*own[1:])):
-            np.testing.assert_array_equal(a, b)
-        # The grouped walk settled most lanes itself: the own walk ran for leaders (one per
-        # group of 8) and for a few others (a ball short of k, or one with more than it keeps).
-        assert lanes[0] == -(-m // 8) and len(lanes) <= 3 and sum(lanes[1:-1]) < 0.2 * m, lanes
+                                     active=active, with_stats=True, **kw)
+        _assert_same_answers(group, own)
+        stats = group[0].stats
+        np.testing.assert_array_equal(stats.photons_found.numpy(), group[0].count.numpy())
+        np.testing.assert_array_equal(stats.nodes_visited.numpy() > 0, active.numpy())
+        assert (stats.photons_tested.numpy() >= stats.photons_found.numpy()).all()
+        # The grouped walk settled most lanes itself: the own walk ran for the leaders (one
+        # per group of 8) and for fewer than a quarter of the others (a ball short of k, as
+        # where lanes accept other photons than their leader, or one with more photons than
+        # it keeps: 12-22% here); then the own walk of the comparison.
+        assert lanes[0] == -(-m // 8) and len(lanes) == 3 and lanes[1] < 0.25 * m, lanes
     _check_knn_against_scipy(pts, queries[np.isfinite(queries).all(1)], k)
     # Queries farther apart than their neighbours (on the whole slab): most walk on their own.
     sparse = mi.Point3f(*[mi.Float(a) for a in (rng.random(m), rng.random(m),
                                                  0.02 * rng.random(m))])
-    group, own = _knn_both_walks(forest, sparse, k)
-    for a, b in zip(_sorted_neighbours(*group[1:]), _sorted_neighbours(*own[1:])):
-        np.testing.assert_array_equal(a, b)
-    # An accept test per lane, and a neighbour count per lane that the bins must split.
-    state.odd, state.radius2 = mi.Bool(np.arange(m) % 2 == 1), dr.zeros(mi.Float, m)
-    group, own = _knn_both_walks(forest, q, k, None, accept=parity, state=state)
-    for a, b in zip(_sorted_neighbours(*group[1:]), _sorted_neighbours(*own[1:])):
-        np.testing.assert_array_equal(a, b)
+    _assert_same_answers(*_knn_both_walks(forest, sparse, k, lambda i, d2, a, s: d2))
+    # Fewer photons than k (in the maps asked for), and fewer queries than SORT_FROM: the own
+    # walk alone (they are not sorted, so a group's lanes would lie apart).
+    _assert_same_answers(*_knn_both_walks(build_forest(pts[:20]), q, k))
+    lanes.clear()
+    few = mi.Point3f(*[mi.Float(queries[:1000, j]) for j in range(3)])
+    _assert_same_answers(*_knn_both_walks(forest, few, k))
+    assert lanes == [1000, 1000]
     # Whatever the bound or the room, the lanes the grouped walk cannot settle are walked on
-    # their own: no room beyond k, or a first ball of only the leader's radius.
+    # their own: no room beyond k, a first ball of only the leader's radius, one bin.
     for name, value in (("KNN_KEEP", 1), ("KNN_REACH", 0.0), ("KNN_BINS", 1)):
-        monkeypatch.setattr(knn_module, name, value)
-        group, own = _knn_both_walks(forest, q, k)
-        for a, b in zip(_sorted_neighbours(*group[1:]), _sorted_neighbours(*own[1:])):
-            np.testing.assert_array_equal(a, b)
-        monkeypatch.undo()
-        monkeypatch.setattr(knn_module, "_knn_walk", lambda f, p, *a: (
-            lanes.append(dr.width(p)), real_walk(f, p, *a))[1])
+        with monkeypatch.context() as patch:
+            patch.setattr(knn_module, name, value)
+            _assert_same_answers(*_knn_both_walks(forest, q, k, lambda i, d2, a, s: d2))
 
 
 def test_grouped_knn_weighs_by_each_lanes_own_radius():
     """A contribution that reads ``state.radius2`` (a density kernel) sees each query's own
-    k-th distance in the grouped walk too; and ties (every photon at one point) take k."""
+    k-th distance in the grouped walk too, and the state keeps it afterwards; ties (every
+    photon at one point, fewer than the walk keeps) take k."""
     rng = np.random.default_rng(22)
     pts = rng.random((20000, 3)).astype(np.float32)
-    queries = rng.random((9000, 3)).astype(np.float32)
+    queries = rng.random((9001, 3)).astype(np.float32)
     forest = build_forest(pts)
     q = mi.Point3f(*[mi.Float(queries[:, j]) for j in range(3)])
     state = _KnnState()
-    state.odd, state.radius2 = dr.zeros(mi.Bool, 9000), dr.zeros(mi.Float, 9000)
+    state.odd, state.radius2 = dr.zeros(mi.Bool, 9001), dr.zeros(mi.Float, 9001)
     group, own = _knn_both_walks(forest, q, 10, lambda i, d2, a, s: 1 - d2 / s.radius2,
-                                 state=state)
-    np.testing.assert_allclose(group[0].total.numpy(), own[0].total.numpy(), rtol=1e-5)
+                                 state=state, order="given")
+    _assert_same_answers(group, own)
     assert (group[0].total.numpy() > 0).all()
-    same = build_forest(np.zeros((300, 3), np.float32))
-    res = knn_query(same, q, 10, lambda i, d2, a, s: mi.Float(1.0))
-    np.testing.assert_array_equal(res.count.numpy(), 10)
-    np.testing.assert_array_equal(res.total.numpy(), 10)
-    np.testing.assert_allclose(res.radius2.numpy(), (queries ** 2).sum(1), rtol=1e-6)
+    np.testing.assert_array_equal(state.radius2.numpy(), own[0].radius2.numpy())
+    same = build_forest(np.zeros((30, 3), np.float32))
+    group, own = _knn_both_walks(same, q, 10, lambda i, d2, a, s: mi.Float(1.0))
+    _assert_same_answers(group, own)
+    np.testing.assert_array_equal(group[0].count.numpy(), 10)
+    np.testing.assert_array_equal(group[0].total.numpy(), 10)
+    np.testing.assert_allclose(group[0].radius2.numpy(), (queries ** 2).sum(1), rtol=1e-6)
     with pytest.raises(ValueError, match="walk must be one of 'group', 'own', got 'x'"):
         knn_query(forest, q, 3, walk="x")
 

@@ -31,9 +31,9 @@ __all__ = ["knn_query", "KnnResult", "knn_neighbours", "KNN_KEEP", "KNN_REACH", 
 KNN_KEEP = 4
 
 #: A member's ball in the grouped walk: a leader's k-th distance plus this share of the way
-#: to it. With 1 the ball surely holds k photons (the triangle inequality); less usually does
-#: too and holds fewer photons to sort, and a lane whose ball holds fewer than k walks again
-#: on its own.
+#: to it. With 1 (and an accept test the same for every lane) the ball surely holds k
+#: photons, by the triangle inequality; less usually does too and holds fewer photons to
+#: sort, and a lane whose ball holds fewer than k walks again on its own.
 KNN_REACH = 0.5
 
 #: A lane whose first ball in the grouped walk is wider than this many times its leader's
@@ -111,14 +111,20 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         Also return the neighbours: two lists of k arrays, squared distances and tree-order
         indices; unused entries hold ``inf`` and ``0xFFFFFFFF``.
     walk : str
-        "group" (default): a bound first, then a fixed-radius walk in groups and a selection
-        (see Notes); "own": each lane walks alone with its shrinking heap (what one query
-        alone runs). Both find the same neighbours.
+        "group" (default): a leader's bound first, then a fixed-radius walk in groups and a
+        selection (see Notes); "own": each lane walks alone with its shrinking heap (what
+        one query alone runs). Both find the same neighbours but where several lie at
+        exactly the k-th distance (which of them is taken depends on the order they are
+        met). Below :data:`~.radius.SORT_FROM` queries with ``order="morton"`` (which are
+        then not sorted, so a group's lanes lie apart) take the own walk.
 
     Returns
     -------
-    KnnResult, or (KnnResult, dist2 list, index list) with ``neighbours=True`` (the lists in
-    heap order; :func:`knn_neighbours` sorts them).
+    KnnResult, or (KnnResult, dist2 list, index list) with ``neighbours=True`` (the lists
+    unsorted: a heap, or for the grouped walk the photons of the nearer bins and then a heap;
+    :func:`knn_neighbours` sorts them). With ``with_stats``, the counts are those of the
+    walks that ran for the lane: for a lane the group walk settled, the shared ball's nodes
+    and the photons it tested; for a lane that walked again on its own, both walks'.
 
     Notes
     -----
@@ -130,13 +136,18 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     found stays).
 
     The grouped walk (:func:`_knn_grouped`) gives the lanes a ball to share. One query per
-    group (:data:`~.radius.GROUP_LANES` side by side in walking order) makes the own walk;
-    its k-th distance plus a member's distance to it bounds that member's k-th distance (the
-    triangle inequality). Every member then walks the fixed ball of its bound with the
-    group, as :func:`~.radius.radius_query` does, and keeps the photons inside; counting them
-    in :data:`KNN_BINS` distance bins finds the bin of the k-th, and a heap sorts only that
-    bin. A lane whose bound holds fewer than k photons (below its cap) or more than
-    :data:`KNN_KEEP` x k walks again on its own, so the neighbours are exact either way.
+    group (:data:`~.radius.GROUP_LANES` side by side in walking order), its leader, makes
+    the own walk, and its answer is final. A leader's k-th distance plus a member's distance
+    to it would bound the member's k-th distance (the triangle inequality, where every lane
+    accepts the same photons); the member's first ball takes :data:`KNN_REACH` of that
+    distance instead, the least over its group's leader and those of the groups on either
+    side, or its cap where that is less. A member whose ball is more than
+    :data:`KNN_SPREAD` times that leader's radius walks on its own straight away. The others
+    walk their balls with the group, as :func:`~.radius.radius_query` does, and keep the
+    photons inside; counting them in :data:`KNN_BINS` distance bins finds the bin of the
+    k-th, and a heap sorts only that bin. A lane whose ball holds fewer than k photons
+    (below its cap) or more than :data:`KNN_KEEP` x k walks again on its own, so the
+    neighbours are exact either way.
     """
     if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
         raise ValueError(f"k must be an integer >= 1, got {k!r}")
@@ -164,7 +175,8 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
     if not isinstance(r2max, float):
         r2max = permute(dr.zeros(mi.Float, width) + r2max, perm, width)
-    run = _knn_grouped if walk == "group" else _knn_walk
+    run = _knn_grouped if walk == "group" and (perm is not None or order == "given") \
+        else _knn_walk
     res, d2, idx = run(forest, permute(p, perm, width), int(k), contribution, result_type,
                        r2max, permute(active, perm, width), forest.walk_table(maps),
                        neighbours, accept, permute(state, perm, width))
@@ -226,7 +238,7 @@ def _knn_walk(forest, p, k, contribution, result_type, r2max, active, walk, neig
     count = dr.zeros(mi.UInt32, width)
     ku = mi.UInt32(k)
     table, t, stop_u, bounds = walk_start(walk, width)
-    active &= t < stop_u
+    active = mi.Bool(active) & (t < stop_u)        # a new array: the caller's stays
     node_base, leaf_base, n_int, stride, span = tree_row(table, t, bounds, active)
     node = dr.zeros(mi.UInt32, width)
     going_down = dr.full(mi.Bool, True, width)
@@ -419,8 +431,8 @@ def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, n
     led = first < width
     leader = dr.minimum(first, width - 1)
     lead = _knn_walk(forest, dr.gather(mi.Point3f, p, leader), k, contribution, result_type,
-                     dr.gather(mi.Float, r2max, leader) if capped else r2max, led, walk,
-                     neighbours, accept, permute(state, leader, width))
+                     dr.gather(mi.Float, r2max, leader) if capped else r2max, mi.Bool(led),
+                     walk, neighbours, accept, permute(state, leader, width))
     full = led & (lead[0].count >= k)             # its radius is a k-th distance
     dr.eval(lead, full)
 
@@ -447,6 +459,7 @@ def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, n
     at_cap = dr.square(bound) >= cap2
     grouped = active & finite & ~is_leader & dr.isfinite(walk2) & \
         (at_cap | (walk2 <= dr.square(KNN_SPREAD * near_r)))
+    dr.eval(walk2, at_cap, grouped, is_leader)   # once, not in each of group_balls' kernels
     ball = group_balls(p, dr.sqrt(walk2) * GROUP_MARGIN, grouped, width)
 
     # The walk of the bound, in groups, keeping the photons inside; the selection.
@@ -456,18 +469,17 @@ def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, n
     _, walked = _walk(forest, p, walk2, ball, None, mi.Float, grouped, walk, True, accept,
                       state, collect=(kept_d, kept_i))
     found = walked.photons_found
-    res, dist2, index = _select(kept_d, kept_i, found, keep, walk2, k, capped, cap2,
-                                contribution, result_type, neighbours, state)
     settled = grouped & (found <= keep) & ((found >= k) | at_cap)
-    res.count = dr.select(settled, res.count, 0)
+    # Lanes that will walk again select nothing (no contribution is evaluated for them).
+    res, dist2, index = _select(kept_d, kept_i, dr.select(settled, found, 0), keep, walk2, k,
+                                capped, cap2, contribution, result_type, neighbours, state)
     res.stats = QueryStats(walked.nodes_visited, walked.photons_tested, res.count)
     rest = active & ~settled & ~is_leader
     dr.eval(res.total, res.radius2, res.count, res.stats.nodes_visited,
             res.stats.photons_tested, rest, dist2, index)
 
     # The leaders' answers, and the own walk of the lanes the group walk did not settle.
-    heads = dr.compress(led)
-    _put((res, dist2, index), lead, dr.gather(mi.UInt32, leader, heads), heads)
+    _put((res, dist2, index), lead, leader, active=led)
     lanes = dr.compress(rest)
     if dr.width(lanes) > 0:
         _put((res, dist2, index), _knn_walk(
@@ -476,20 +488,21 @@ def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, n
             dr.full(mi.Bool, True, dr.width(lanes)), walk, neighbours, accept,
             permute(state, lanes, width)), lanes)
     res.stats.photons_found = res.count
+    if hasattr(state, "radius2"):
+        state.radius2 = mi.Float(res.radius2)     # as the own walk leaves it
     return res, dist2, index
 
 
-def _put(into, other, lanes, rows=None):
-    """Write the answers ``other`` (a walk's (KnnResult, dist2, index)), its entries
-    ``rows`` (default: all), into the lanes ``lanes`` of ``into``; the counts add up."""
+def _put(into, other, lanes, active=True):
+    """Write the answers ``other`` (a walk's (KnnResult, dist2, index)) into the lanes
+    ``lanes`` of ``into``, where ``active``; the traversal counts add up."""
     (res, dist2, index), (theirs, d2, idx) = into, other
-    pick = (lambda v: v) if rows is None else (lambda v: dr.gather(type(v), v, rows))
     for name in ("total", "radius2", "count"):
-        dr.scatter(getattr(res, name), pick(getattr(theirs, name)), lanes)
-    dr.scatter_add(res.stats.nodes_visited, pick(theirs.stats.nodes_visited), lanes)
-    dr.scatter_add(res.stats.photons_tested, pick(theirs.stats.photons_tested), lanes)
+        dr.scatter(getattr(res, name), getattr(theirs, name), lanes, active)
+    dr.scatter_add(res.stats.nodes_visited, theirs.stats.nodes_visited, lanes, active)
+    dr.scatter_add(res.stats.photons_tested, theirs.stats.photons_tested, lanes, active)
     for mine, value in zip((dist2 or []) + (index or []), (d2 or []) + (idx or [])):
-        dr.scatter(mine, pick(value), lanes)
+        dr.scatter(mine, value, lanes, active)
     dr.eval(res.total, res.radius2, res.count, res.stats.nodes_visited,
             res.stats.photons_tested, dist2, index)
 

@@ -294,14 +294,15 @@ def _walk(forest, p, r2, ball, contribution, result_type, active, walk, with_sta
     trees of ``walk`` (:meth:`~.forest.Forest.walk_table`): nodes and leaves are chosen by
     the lane's walking ``ball`` (centre, radius: :func:`group_balls`), photons by its own
     squared radius ``r2``. ``collect``: two local arrays (squared distances, indices) that
-    keep the photons found, as many as they hold; ``photons_found`` then counts all of them,
-    and a lane that finds more than they hold stops."""
+    keep the photons found, as many as they hold; ``photons_found`` then counts them, and a
+    lane that finds more than they hold stops after that leaf (its count is then only a
+    lower bound)."""
     width = dr.width(p)
     c, cr = ball
     cr2 = cr * cr
     total = dr.zeros(result_type, width)
     table, k, stop_u, bounds = walk_start(walk, width)
-    active &= k < stop_u
+    active = mi.Bool(active) & (k < stop_u)        # a new array: the caller's stays
     node_base, leaf_base, n_int, stride, span = tree_row(table, k, bounds, active)
     node = dr.zeros(mi.UInt32, width)
     going_down = dr.full(mi.Bool, True, width)
