@@ -8,6 +8,7 @@ import pytest
 from hwsim.workload import load_workloads
 from mi_partpm.cli import main
 from mi_partpm.experiments import speedup
+from mi_partpm.kdtree import LEAF_SIZE
 from mi_partpm.experiments.provenance import code_version
 from mi_partpm.experiments.speedup import GatherError, gather_bound, gather_excess, run_speedup
 
@@ -37,7 +38,7 @@ def test_speedup_per_map_estimates_gather_to_one_map(tmp_path):
     # SIMD lanes that ran the queries.
     assert meta["version"] == 3 and meta["radius_fraction"] == 0.05 and meta["threads"] >= 1
     assert meta["lanes"] in (4, 8, 16, 32)
-    assert meta["leaf_size"] == 32
+    assert meta["leaf_size"] == LEAF_SIZE
     one = loads[1]
     for n, w in loads.items():
         # Same photons, same radius: the photons found per query split exactly over the maps.

@@ -85,25 +85,13 @@ def machine() -> dict:
 
 def simd_lanes() -> int:
     """Queries that run side by side in one packet of Dr.Jit's kernels on this machine: a
-    CUDA warp's 32, or the LLVM backend's vector width, which Dr.Jit picks from the host's
-    instruction set (16 lanes of float32 with AVX-512, 8 with AVX, 4 otherwise)."""
+    CUDA warp's 32, or the LLVM backend's vector width
+    (:func:`~mi_partpm.kdtree.radius.packet_lanes`)."""
     import mitsuba as mi
     if mi.variant() and mi.variant().startswith("cuda"):
         return 32
-    flags = set()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    flags = set(line.split(":", 1)[1].split())
-                    break
-    except OSError:
-        pass
-    if "avx512f" in flags:
-        return 16
-    if "avx" in flags:
-        return 8
-    return 4
+    from ..kdtree.radius import packet_lanes
+    return packet_lanes()
 
 
 def l1_data_bytes():

@@ -47,12 +47,17 @@ __all__ = ["Forest", "build_forest", "shared_leaf_size", "morton_codes", "morton
            "tree_bytes", "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES",
            "LEAF_BOX_BYTES", "RECORD_FLOATS", "LAYOUTS"]
 
-#: Default number of photons per leaf. With the while-while walk of :mod:`.radius` large
-#: leaves pay: on 200,000 Morton-ordered hit points of the Cornell box (r = 1/20, 460 photons
-#: found per query) one map answers in 0.41 / 0.27 / 0.20 / 0.20 s with leaves of
-#: 8 / 16 / 24 / 32, and on a room of 200,000 photons (900 found per query) in 0.64 / 0.43 /
-#: 0.41 / 0.28 s (``partpm bench`` measures the current value against scipy).
-LEAF_SIZE = 32
+#: Default most photons per leaf (a tree's leaves hold between half of it and all of it).
+#: With the while-while walk of :mod:`.radius` large leaves pay: on 200,000 Morton-ordered
+#: hit points of the Cornell box (r = 1/20, 460 photons found per query) one map answered in
+#: 0.41 / 0.27 / 0.20 / 0.20 s with leaves of 8 / 16 / 24 / 32, and on a room of 200,000
+#: photons (900 found per query) in 0.64 / 0.43 / 0.41 / 0.28 s (AVX2, before group walks
+#: and leaf boxes). With both, on AVX-512, 32 / 64 / 96 / 128 gave power sums in 0.235 /
+#: 0.207-0.214 / 0.206 / 0.206 s (Cornell box) and 0.298 / 0.275-0.278 / 0.272 / 0.276 s
+#: (room), kNN and the integrator's estimate within 5%, and a build of 1.2 x 10^6 photons
+#: in 0.16 / 0.13-0.15 / 0.11 / 0.11 s (a level fewer per doubling). ``partpm bench``
+#: measures the current value against scipy.
+LEAF_SIZE = 64
 
 #: Bytes of one internal node: the split value (float32) and the split axis (uint32).
 NODE_BYTES = 8
