@@ -134,11 +134,12 @@ class _Estimator:
         # the scene's BSDFs for every photon found.
         self.all_plain = not bool(dr.any(self.active & ~self.lane.plain)[0])
 
-    def contribution(self, i, dist2, found, lane: _Lane):
+    def contribution(self, i, dist2, found, lane: _Lane, code=None):
         """f_r * power of photon ``i`` (power alone for plain diffuse), weighted by the kernel
-        at squared distance ``dist2``; 0 from the far side."""
+        at squared distance ``dist2``; 0 from the far side. ``code``: the photon's direction
+        code, as the query read it with the photon's position."""
         maps = self.maps
-        wi_photon = maps.photon_direction(i, found)
+        wi_photon = maps.photon_direction(i, found, code)
         power = maps.photon_power(i, found)
         same_side = dr.dot(wi_photon, lane.n_view) > 0
         value = dr.select(same_side, power, 0.0)
@@ -204,7 +205,7 @@ def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, act
     est = _Estimator(maps, si, bsdf, active, radius2, max_bounce, kernel, lobes)
     res = radius_query(maps.forest, si.p, mi.Float(radius), est.contribution, mi.Spectrum,
                        est.active, maps=map_range, with_stats=True, accept=est.accept(),
-                       state=est.lane, order=order, walk=walk)
+                       state=est.lane, order=order, walk=walk, with_payload=True)
     total, stats = res
     return est.flux(total, stats.photons_found, est.lane.radius2,
                     stats if with_stats else None)
@@ -220,7 +221,7 @@ def knn_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, k: int, max_ra
     est = _Estimator(maps, si, bsdf, active, 0.0, max_bounce, kernel, lobes)
     res = knn_query(maps.forest, si.p, k, est.contribution, mi.Spectrum, max_radius,
                     est.active, with_stats=with_stats, accept=est.accept(), state=est.lane,
-                    order=order, walk=walk)
+                    order=order, walk=walk, with_payload=True)
     return est.flux(res.total, res.count, res.radius2, res.stats)
 
 

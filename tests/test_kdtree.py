@@ -716,3 +716,50 @@ def test_groups_are_one_simd_packet_of_dr_jit():
     widths = {int(w) for w in re.findall(r"<(\d+) x float>", ir[-1])}
     assert widths == {packet_lanes()}, widths
     assert group_lanes(x) == packet_lanes()
+
+
+@pytest.mark.parametrize("walk", ["group", "own"])
+def test_contributions_get_the_payload_read_with_the_position(walk):
+    """With ``with_payload`` the queries hand each photon's 32-bit payload (the direction code
+    of a photon map) to the contribution, read by the distance test's load: the sums of the
+    payloads equal those of payloads gathered by index, for the fixed-radius and the kNN
+    query, in both walks and over a range of maps."""
+    rng = np.random.default_rng(31)
+    n = 20_000
+    pts = rng.random((n, 3)).astype(np.float32)
+    pts[:, 2] *= 0.05
+    payload = (rng.integers(0, 1 << 20, n)).astype(np.uint32)
+    forest = build_forest(pts, rng.integers(0, 3, n), 3, payload=mi.UInt32(payload),
+                          layout="shared")
+    by_index = mi.Float(payload[forest.order].astype(np.float32))
+    q = np.c_[rng.random((6000, 2)), np.full(6000, 0.025)].astype(np.float32)
+    p = mi.Point3f(*[mi.Float(q[:, k]) for k in range(3)])
+    with_payload = lambda i, d2, a, s, code: mi.Float(code)
+    gathered = lambda i, d2, a, s: dr.gather(mi.Float, by_index, i, a)
+    for maps in (None, (1, 3)):
+        a = radius_query(forest, p, 0.04, with_payload, maps=maps, walk=walk, with_payload=True)
+        b = radius_query(forest, p, 0.04, gathered, maps=maps, walk=walk)
+        assert np.array_equal(a.numpy(), b.numpy()) and b.numpy().max() > 0
+        a = knn_query(forest, p, 20, with_payload, maps=maps, walk=walk, with_payload=True)
+        b = knn_query(forest, p, 20, gathered, maps=maps, walk=walk)
+        assert np.array_equal(a.total.numpy(), b.total.numpy()) and b.total.numpy().max() > 0
+
+
+def test_photon_maps_read_each_photons_power_and_direction():
+    """The maps hold every photon's power packed (RGB and one unused float: one 16-byte load)
+    and its direction code in its record: read back by tree-order index they are the traced
+    photon's own, and a photon costs 32 bytes (16 of record, 16 of power)."""
+    from mi_partpm.photonmap import POWER_FLOATS, record_bytes
+    from mi_partpm.photons import decode_direction
+    from mi_partpm.scenes import load_scene
+    traced = trace_photons(load_scene("cornell_box"), 20_000, 3, 4)
+    maps = build_photon_maps(traced)
+    order = maps.forest.order
+    index = dr.arange(mi.UInt32, len(traced))
+    power = np.array(maps.photon_power(index))
+    assert np.array_equal(power, np.array(traced.flux)[:, order])
+    code = traced.code.numpy()[order]
+    np.testing.assert_array_equal(np.array(maps.photon_direction(index)),
+                                  np.array(decode_direction(mi.UInt32(code))))
+    assert POWER_FLOATS == 4 and record_bytes() == 32 and record_bytes(True) == 36
+    assert maps.power.numpy().reshape(-1, 4)[:, 3].max() == 0

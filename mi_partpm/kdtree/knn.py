@@ -21,7 +21,8 @@ import numpy as np
 from .forest import Forest
 from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, coordinate,
                      group_balls, group_lanes, leaf_reached, leaf_run, order_queries, permute,
-                     photon_position, split_of, tree_row, unpermute, walk_start)
+                     photon_payload, photon_position, split_of, tree_row, unpermute,
+                     walk_start)
 
 __all__ = ["knn_query", "KnnResult", "knn_neighbours", "KNN_KEEP", "KNN_REACH", "KNN_SPREAD",
            "KNN_BINS"]
@@ -75,7 +76,7 @@ class KnnResult:
 def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
               max_radius=None, active=True, maps=None, with_stats: bool = False,
               neighbours: bool = False, accept=None, state=None, order: str = "morton",
-              walk: str = "group"):
+              walk: str = "group", with_payload: bool = False):
     """The ``k`` photons nearest to each query point, and the sum of their contributions.
 
     Parameters
@@ -89,7 +90,10 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     contribution : callable(index, dist2, active, state) -> result_type, optional
         Summed over the neighbours found, as in :func:`~.radius.radius_query`, after the
         walk; when ``state`` has a ``radius2`` field it is set to each query's final squared
-        radius first (what a density kernel weighs by).
+        radius first (what a density kernel weighs by). With ``with_payload`` it takes a
+        fifth argument, the photon's 32-bit payload (``mi.UInt32``), as for
+        :func:`~.radius.radius_query` (read per neighbour: the neighbours are chosen
+        before any contribution is evaluated).
     result_type : Dr.Jit array type
         Type of ``contribution``'s results (default: ``mi.Float``).
     max_radius : float or mi.Float, optional
@@ -171,6 +175,11 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
             return (res, [dr.full(mi.Float, dr.inf, width)] * k,
                     [dr.full(mi.UInt32, 0xFFFFFFFF, width)] * k)
         return res
+    if with_payload and contribution is not None:
+        own = contribution
+
+        def contribution(i, d2, a, s):
+            return own(i, d2, a, s, photon_payload(forest, i, a))
     perm = order_queries(p, width, order)
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
     if not isinstance(r2max, float):

@@ -80,10 +80,22 @@ def coordinate(p, axis):
     return dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
 
 
+def photon_record(forest: Forest, index, active=True):
+    """Positions and 32-bit payloads (``mi.UInt32``) of the photons at tree-order ``index``
+    (one 16-byte load each)."""
+    rec = dr.gather(mi.Vector4f, forest.records, index, active)
+    return mi.Point3f(rec.x, rec.y, rec.z), dr.reinterpret_array(mi.UInt32, rec.w)
+
+
 def photon_position(forest: Forest, index, active=True) -> mi.Point3f:
     """Positions of the photons at tree-order ``index`` (one 16-byte load each)."""
-    rec = dr.gather(mi.Vector4f, forest.records, index, active)
-    return mi.Point3f(rec.x, rec.y, rec.z)
+    return photon_record(forest, index, active)[0]
+
+
+def photon_payload(forest: Forest, index, active=True):
+    """The 32-bit payloads (``mi.UInt32``) of the photons at tree-order ``index``."""
+    return dr.reinterpret_array(mi.UInt32, dr.gather(mi.Float, forest.records,
+                                                     RECORD_FLOATS * index + 3, active))
 
 
 def order_queries(p, width: int, order: str):
@@ -202,7 +214,7 @@ def unpermute(value, perm, width):
 
 def radius_query(forest: Forest, p, r, contribution, result_type=None, active=True,
                  maps=None, with_stats: bool = False, accept=None, state=None,
-                 order: str = "morton", walk: str = "group"):
+                 order: str = "morton", walk: str = "group", with_payload: bool = False):
     """Sum, over the photons within distance ``r`` of each query point, ``contribution``.
 
     Parameters
@@ -217,7 +229,8 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     contribution : callable(index, dist2, active, state) -> result_type
         Called for each photon found, with its tree-order index into the forest's photon
         arrays, its squared distance to the query point (what a density kernel weighs) and
-        ``state`` in the walk's lane order; its results are summed.
+        ``state`` in the walk's lane order; its results are summed. With ``with_payload``
+        it takes a fifth argument, the photon's 32-bit payload (``mi.UInt32``).
     result_type : Dr.Jit array type
         Type of ``contribution``'s results, e.g. ``mi.Spectrum`` (default: ``mi.Float``).
     active : mi.Bool
@@ -242,6 +255,10 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
         together, by a ball around all their balls, and each tests photons against its own
         (:func:`group_balls`); "own": each lane walks with its own ball. Both find the same
         photons; the counts of ``with_stats`` are those of the walk that ran.
+    with_payload : bool
+        Pass ``contribution`` each photon's payload (the direction of a photon map's
+        photons), read with its position by the load of the distance test: no second
+        read per photon found.
 
     Returns
     -------
@@ -265,7 +282,7 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     ball = group_balls(p, r, active, width) if walk == "group" else (p, r)
     total, stats = _walk(forest, p, r * r, ball, contribution,
                          result_type, active, forest.walk_table(maps), with_stats, accept,
-                         permute(state, perm, width))
+                         permute(state, perm, width), with_payload=with_payload)
     total = unpermute(total, perm, width)
     if not with_stats:
         return total
@@ -333,14 +350,14 @@ def split_of(forest: Forest, node, active=True):
 
 @dr.syntax
 def _walk(forest, p, r2, ball, contribution, result_type, active, walk, with_stats, accept,
-          state, collect=None):
+          state, collect=None, with_payload=False):
     """The while-while walk behind :func:`radius_query`, one lane per query point, over the
     trees of ``walk`` (:meth:`~.forest.Forest.walk_table`): nodes and leaves are chosen by
     the lane's walking ``ball`` (centre, radius: :func:`group_balls`), photons by its own
     squared radius ``r2``. ``collect``: two local arrays (squared distances, indices) that
     keep the photons found, as many as they hold; ``photons_found`` then counts them, and a
     lane that finds more than they hold stops after that leaf (its count is then only a
-    lower bound)."""
+    lower bound). ``with_payload``: ``contribution`` takes the photon's payload too."""
     width = dr.width(p)
     c, cr = ball
     cr2 = cr * cr
@@ -401,7 +418,8 @@ def _walk(forest, p, r2, ball, contribution, result_type, active, walk, with_sta
                 valid = j < end
                 if dr.hint(with_stats, mode="scalar"):
                     photons_tested += mi.UInt32(valid)
-                dist2 = dr.squared_norm(photon_position(forest, j, valid) - p)
+                at, payload = photon_record(forest, j, valid)
+                dist2 = dr.squared_norm(at - p)
                 found = valid & (dist2 <= r2)
                 if dr.hint(accept is not None, mode="scalar"):
                     found &= accept(j, found, state)
@@ -413,7 +431,9 @@ def _walk(forest, p, r2, ball, contribution, result_type, active, walk, with_sta
                         collect[1].write(j, photons_found, keep)
                     if dr.hint(with_stats or collect is not None, mode="scalar"):
                         photons_found += 1
-                    if dr.hint(contribution is not None, mode="scalar"):
+                    if dr.hint(contribution is not None and with_payload, mode="scalar"):
+                        total += contribution(j, dist2, found, state, payload)
+                    elif dr.hint(contribution is not None, mode="scalar"):
                         total += contribution(j, dist2, found, state)
             i += SCAN_UNROLL
         going_down = mi.Bool(False)
