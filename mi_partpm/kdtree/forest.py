@@ -775,19 +775,23 @@ def _leaf_boxes(records, leaf_table, leaf_base, tree, j, maps_in_tree):
 
 
 def _records(p, order, payload):
-    """The 4-float records of the photons in tree ``order`` (at least one record): each
-    photon's record is one 16-byte packet store at its place in the tree order (the inverse
-    of ``order``), read in the photons' own order (was one random read per coordinate; a
-    packed copy read by a packet gather would cost 16 bytes per photon more)."""
+    """The 4-float records of the photons in tree ``order`` (at least one record): the
+    photons' records are packed in their own order (sequential 16-byte stores), and each
+    place of the tree order reads its photon's with one 16-byte gather and writes it in
+    turn. A scatter to each photon's place in the tree order writes fresh memory at random,
+    which ran 3x longer on a map of 3.7 x 10^6 photons (62 against 21 ms; with memory
+    Dr.Jit hands back from an earlier kernel 23 against 17 ms), and needs the inverse of
+    ``order`` first; the packed copy costs 16 bytes per photon while the records are made."""
     n = dr.width(order)
     if n == 0:
         return dr.zeros(mi.Float, RECORD_FLOATS)
-    place = dr.empty(mi.UInt32, n)               # place[order[t]] = t
-    dr.scatter(place, dr.arange(mi.UInt32, n), order)
-    dr.eval(place)
     fourth = dr.zeros(mi.Float, n) if payload is None else \
         dr.reinterpret_array(mi.Float, payload)
+    own = dr.arange(mi.UInt32, n)
+    packed = dr.empty(mi.Float, RECORD_FLOATS * n)
+    dr.scatter(packed, mi.Vector4f(p.x, p.y, p.z, fourth), own)
+    dr.eval(packed)
     records = dr.empty(mi.Float, RECORD_FLOATS * n)
-    dr.scatter(records, mi.Vector4f(p.x, p.y, p.z, fourth), place)
+    dr.scatter(records, dr.gather(mi.Vector4f, packed, order), own)
     dr.eval(records)
     return records
