@@ -86,7 +86,8 @@ WEIGHTINGS = ("relative", "absolute")
 #: What a cross-scene prediction must reach: R^2, largest relative error, every cost > 0.
 GOAL = {"r2": 0.95, "max_rel_error": 0.15}
 
-#: Bytes of a tree node and a photon record in the synthetic workloads (those of an RGB map).
+#: Bytes of a tree node and a photon in the synthetic workloads (an RGB map's, unpadded:
+#: position, direction code and RGB power; the golden reports are made with these).
 SYNTHETIC_NODE_BYTES, SYNTHETIC_RECORD_BYTES = 8, 28
 
 

@@ -702,6 +702,9 @@ def test_groups_are_one_simd_packet_of_dr_jit():
     assert packet_lanes(["sse4_2"]) == 4
     assert packet_lanes(["sse4_2", "avx", "avx2"]) == 8
     assert packet_lanes(["avx", "avx2", "avx512f", "avx512vl"]) == 16
+    if mi.variant().startswith("cuda"):
+        assert group_lanes(dr.arange(mi.Float, 4)) == 32       # a warp; no packets to read
+        return
     flag = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
@@ -749,7 +752,7 @@ def test_photon_maps_read_each_photons_power_and_direction():
     """The maps hold every photon's power packed (RGB and one unused float: one 16-byte load)
     and its direction code in its record: read back by tree-order index they are the traced
     photon's own, and a photon costs 32 bytes (16 of record, 16 of power)."""
-    from mi_partpm.photonmap import POWER_FLOATS, record_bytes
+    from mi_partpm.photonmap import POWER_FLOATS, power_floats, record_bytes
     from mi_partpm.photons import decode_direction
     from mi_partpm.scenes import load_scene
     traced = trace_photons(load_scene("cornell_box"), 20_000, 3, 4)
@@ -761,5 +764,7 @@ def test_photon_maps_read_each_photons_power_and_direction():
     code = traced.code.numpy()[order]
     np.testing.assert_array_equal(np.array(maps.photon_direction(index)),
                                   np.array(decode_direction(mi.UInt32(code))))
-    assert POWER_FLOATS == 4 and record_bytes() == 32 and record_bytes(True) == 36
-    assert maps.power.numpy().reshape(-1, 4)[:, 3].max() == 0
+    assert record_bytes() == 16 + 4 * power_floats() and record_bytes(True) == record_bytes() + 4
+    if power_floats() == POWER_FLOATS:                  # RGB: three channels and the pad
+        assert record_bytes() == 32
+        assert maps.power.numpy().reshape(-1, POWER_FLOATS)[:, 3].max() == 0

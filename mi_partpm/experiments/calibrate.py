@@ -387,7 +387,8 @@ def format_readme_table(result) -> str:
         cache = [(f"{c[k] * 1e9:.3f}" + (" (0!)" if k in f["zero"] else "")) if k in c
                  else "not modelled" for k in ("per_node_cache", "per_test_cache")]
         lines.append(
-            f"| {d['fit_on']} | {' | '.join(cost)} | {c['fixed'] * 1e3:.1f} | "
+            f"| {d['fit_on']} | {' | '.join(cost)} | {c['fixed'] * 1e3:.1f}"
+            f"{' (0!)' if 'fixed' in f['zero'] else ''} | "
             f"{' | '.join(cache)} | "
             f"{f['self']['r2']:.3f} | {f['self']['max_rel_error'] * 100:.0f}% | {d['predicts']} "
             f"| {p['r2']:.3f} | {p['max_rel_error'] * 100:.0f}% | "

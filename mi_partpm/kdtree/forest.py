@@ -47,7 +47,8 @@ __all__ = ["Forest", "build_forest", "shared_leaf_size", "morton_codes", "morton
            "tree_bytes", "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES",
            "LEAF_BOX_BYTES", "RECORD_FLOATS", "LAYOUTS"]
 
-#: Default most photons per leaf (a tree's leaves hold between half of it and all of it).
+#: Default most photons per leaf of a tree of one map (a shared tree's: :func:`shared_leaf_size`);
+#: a tree of more photons than that has leaves of between half of it and all of it.
 #: With the while-while walk of :mod:`.radius` large leaves pay: on 200,000 Morton-ordered
 #: hit points of the Cornell box (r = 1/20, 460 photons found per query) one map answered in
 #: 0.41 / 0.27 / 0.20 / 0.20 s with leaves of 8 / 16 / 24 / 32, and on a room of 200,000

@@ -135,7 +135,7 @@ def packet_lanes(cpu_flags=None) -> int:
     """Lanes of a SIMD packet of Dr.Jit's LLVM backend on this machine, by the rule Dr.Jit
     applies to the host CPU's features: 16 with AVX-512VL, 8 with AVX, 4 with SSE 4.2 or
     on ARM. ``cpu_flags``: the flags to read (default: this machine's, from
-    ``/proc/cpuinfo``; 8 where they cannot be read on x86)."""
+    ``/proc/cpuinfo``; 8 where they cannot be read)."""
     if cpu_flags is None:
         if platform.machine().lower() in ("arm64", "aarch64"):
             return 4
