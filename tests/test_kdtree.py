@@ -764,6 +764,7 @@ def test_photon_maps_read_each_photons_power_and_direction():
     code = traced.code.numpy()[order]
     np.testing.assert_array_equal(np.array(maps.photon_direction(index)),
                                   np.array(decode_direction(mi.UInt32(code))))
+    assert POWER_FLOATS == 4
     assert record_bytes() == 16 + 4 * power_floats() and record_bytes(True) == record_bytes() + 4
     if power_floats() == POWER_FLOATS:                  # RGB: three channels and the pad
         assert record_bytes() == 32

@@ -382,13 +382,14 @@ def format_readme_table(result) -> str:
     for d in cross["directions"]:
         f, p = d["fit"], d["prediction"]
         c = f["costs"]
-        cost = [f"{c[k] * 1e9:.2f}" + (" (0!)" if k in f["zero"] else "")
-                for k in ("per_node", "per_test", "per_found")]
-        cache = [(f"{c[k] * 1e9:.3f}" + (" (0!)" if k in f["zero"] else "")) if k in c
-                 else "not modelled" for k in ("per_node_cache", "per_test_cache")]
+
+        def shown(k, scale, digits):                 # a cost fitted to 0 is flagged
+            return f"{c[k] * scale:.{digits}f}" + (" (0!)" if k in f["zero"] else "")
+        cost = [shown(k, 1e9, 2) for k in ("per_node", "per_test", "per_found")]
+        cache = [shown(k, 1e9, 3) if k in c else "not modelled"
+                 for k in ("per_node_cache", "per_test_cache")]
         lines.append(
-            f"| {d['fit_on']} | {' | '.join(cost)} | {c['fixed'] * 1e3:.1f}"
-            f"{' (0!)' if 'fixed' in f['zero'] else ''} | "
+            f"| {d['fit_on']} | {' | '.join(cost)} | {shown('fixed', 1e3, 1)} | "
             f"{' | '.join(cache)} | "
             f"{f['self']['r2']:.3f} | {f['self']['max_rel_error'] * 100:.0f}% | {d['predicts']} "
             f"| {p['r2']:.3f} | {p['max_rel_error'] * 100:.0f}% | "
