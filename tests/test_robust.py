@@ -182,6 +182,39 @@ def test_lanes_that_take_photons_in_turn_give_the_same_photons(monkeypatch):
         np.testing.assert_array_equal(np.asarray(a.bounces), np.asarray(other.bounces))
 
 
+def test_runs_of_claims_give_the_same_photons(monkeypatch):
+    """A tracer lane claims photons and buffer slots in runs (on the LLVM backend): the run
+    lengths must change nothing, not even the order of the stored photons. Runs of 1 are
+    the CUDA setting; runs of 3 photons and 5 slots leave many runs part full and do not
+    divide the buffer."""
+    import mi_partpm.trace as trace
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    a = trace_photons(scene, 20_000, 3, 1)
+    assert trace.claim_runs() == (trace.PHOTON_RUN, trace.SLOT_RUN) and trace.SLOT_RUN > 1
+    for photon_run, slot_run in ((1, 1), (3, 5)):
+        monkeypatch.setattr(trace, "PHOTON_RUN", photon_run)
+        monkeypatch.setattr(trace, "SLOT_RUN", slot_run)
+        assert_same_photons(a, trace_photons(scene, 20_000, 3, 1))
+
+
+def test_a_buffer_too_small_for_the_runs_traces_the_batch_again(monkeypatch):
+    """A batch whose lanes claim more runs of slots than its buffer holds is traced again
+    with room for them all, and gives the same photons as a batch that fitted."""
+    import mi_partpm.trace as trace
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    run = trace._Run(scene, 20_000, trace.map_seeds(1, 1), 64, 5, 1, 0)
+    lane_map, lane_index = np.zeros(20_000, np.uint32), np.arange(20_000, dtype=np.uint64)
+    calls = record_tracer_kernels(monkeypatch)
+    roomy, _ = run.batch(lane_map, lane_index, per_lane=16.0)
+    assert len(calls) == 1
+    calls.clear()
+    small, _ = run.batch(lane_map, lane_index, per_lane=0.01)    # a buffer of 1024 slots
+    assert len(calls) == 2 and len(small) > 40_000
+    for field in ("points", "code", "flux", "maps", "bounces"):
+        np.testing.assert_array_equal(np.asarray(getattr(roomy, field)),
+                                      np.asarray(getattr(small, field)), err_msg=field)
+
+
 # ---------------------------------------------------------------- no NaN or inf, ever
 
 def grazing_scene(black=False):
