@@ -23,9 +23,9 @@ Nothing goes to the host during a batch. The slots are claimed in whatever order
 threads run; each path's count of stored photons, its prefix sum and each photon's rank put
 them back in the order of the photons without a sort, so every run gives the same arrays.
 A pilot batch of a sixteenth of a batch measures the photons stored per path first, and the
-later batches size their buffers from it; a batch that stores more photons than its buffer
-holds is traced again with a buffer of the right size (the streams are deterministic, so
-the photons are the same). The result is :class:`~mi_partpm.photons.Photons`, on the
+later batches size their buffers from it, with room for a part-full run of slots per lane
+at work; a batch whose lanes claim more slots than its buffer holds is traced again with a
+buffer that holds them (the streams are deterministic, so the photons are the same). The result is :class:`~mi_partpm.photons.Photons`, on the
 device.
 """
 from __future__ import annotations
@@ -270,7 +270,8 @@ class _Run:
         """Trace one batch; returns (photons, ray segments traced)."""
         lanes = lane_map.shape[0]
         slot_run = claim_runs()[1]
-        capacity = _round_up(max(1024, int(lanes * per_lane * 1.25)), slot_run)
+        capacity = _round_up(max(1024, int(lanes * per_lane * 1.25))
+                             + run_slack(lane_count(lanes), slot_run), slot_run)
         ranked = True
         while True:
             out, counts, too_deep, runs, segments = self._kernel(
@@ -280,9 +281,10 @@ class _Run:
                 ranked = False                    # a bounce count did not fit beside a rank
             elif used <= capacity:
                 break
-            # Trace again with room for every run (how many runs end part full depends on
-            # how the threads ran: a tenth more).
-            capacity = max(capacity, _round_up(int(used * 1.1), slot_run))
+            # Trace again with room for every run claimed (how many runs end part full
+            # depends on how the threads ran: with runs, a tenth more).
+            capacity = max(capacity, _round_up(used + (used // 10 if slot_run > 1 else 0),
+                                               slot_run))
         if used == 0:
             return empty_photons(self.photon_count, 0), int(segments[0])
         # The slots were claimed in whatever order the threads ran: put the photons in the
@@ -406,6 +408,18 @@ def claim_runs() -> tuple:
 
 def _round_up(x: int, step: int) -> int:
     return -(-int(x) // step) * step
+
+
+#: Lanes that may be at work at once in a batch, at most, for the room of their part-full
+#: runs of slots: on the LLVM backend a packet per thread (16 lanes on AVX-512), so 1024
+#: covers 64 threads; beyond, a batch is traced again at worst.
+WORKING_LANES = 1024
+
+
+def run_slack(lanes: int, slot_run: int) -> int:
+    """Slots a batch's buffer holds beyond its stored photons: the unused end of the last
+    run of each lane at work (none with runs of one slot)."""
+    return 0 if slot_run == 1 else min(int(lanes), WORKING_LANES) * (slot_run - 1)
 
 
 def lane_count(photons: int) -> int:
