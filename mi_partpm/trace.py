@@ -406,6 +406,16 @@ def claim_runs() -> tuple:
     return PHOTON_RUN, SLOT_RUN
 
 
+def _next_in_run(counter, take, next_, end, run: int):
+    """Where ``take``, each lane takes the next index of its run ``[next_, end)``, claiming
+    the next run of ``run`` indices from ``counter`` (``dr.scatter_inc``) once its run is
+    used up. Returns (the index taken, the new next, the new end)."""
+    refill = take & (next_ >= end)
+    start = dr.scatter_inc(counter, mi.UInt32(0), refill) * run
+    index = dr.select(refill, start, next_)
+    return index, index + dr.select(take, 1, 0), dr.select(refill, start + run, end)
+
+
 def _round_up(x: int, step: int) -> int:
     return -(-int(x) // step) * step
 
@@ -485,12 +495,8 @@ def _trace_paths(run, map_id, photon_index, out, runs, capacity, width, counts=N
         need = ~active & ~finished
         if dr.hint(ranked, mode="scalar"):
             dr.scatter(counts, rank, photon, need & (rank > 0))   # the photon that ended
-        refill = need & (photon_next >= photon_end)
-        run_start = dr.scatter_inc(queue, mi.UInt32(0), refill) * photon_run
-        photon_next = dr.select(refill, run_start, photon_next)
-        photon_end = dr.select(refill, run_start + photon_run, photon_end)
-        claim = photon_next
-        photon_next = photon_next + dr.select(need, 1, 0)   # not +=: claim is the same array
+        claim, photon_next, photon_end = _next_in_run(queue, need, photon_next, photon_end,
+                                                      photon_run)
         fresh = need & (claim < photons)
         done = need & ~fresh
         finished |= done
@@ -531,12 +537,7 @@ def _trace_paths(run, map_id, photon_index, out, runs, capacity, width, counts=N
             store &= ~caustic
         # A stored photon takes the next slot of its lane's run of slots; a lane whose run is
         # full claims the next run.
-        more = store & (slot_next >= slot_end)
-        run_start = dr.scatter_inc(runs, mi.UInt32(0), more) * slot_run
-        slot_next = dr.select(more, run_start, slot_next)
-        slot_end = dr.select(more, run_start + slot_run, slot_end)
-        slot = slot_next
-        slot_next = slot_next + dr.select(store, 1, 0)      # not +=: slot is the same array
+        slot, slot_next, slot_end = _next_in_run(runs, store, slot_next, slot_end, slot_run)
         write = store & (slot < room)
         head, tail = _slot(si.p, encode_direction(-ray.d),
                            power * shading_correction(si, -ray.d), photon)
