@@ -401,10 +401,13 @@ def _partition_level(ids, rel, node_first, node_median, node_axis, level_node, i
     flags are the low and high 16 bits of one 32-bit count, and within a node the difference
     of two counts splits into the two exact counts. ``node_in_map`` is each position's node
     within its map's level. Kernels that can share their reads are fused: the sides with each
-    position's next node, the targets with the x order's scatter, the second order's renaming
-    with both orders' flags (a build of 3.7 x 10^6 random points took 0.91 of the unfused
-    one's time, of 3 x 10^5 0.94-0.98, timed in turn in one process). Returns the new ``(ids, rel)`` and each position's node at the next level (2k,
-    or 2k + 1 where it went right; unchanged outside the level; None after the ``last``)."""
+    position's next node, the targets with the x order's scatter, each order's renaming with
+    its right-goer flags (with ``packed``, the second order's with both orders' flags): a
+    level is five kernels over the photons (two at the ``last``), and two prefix sums (three
+    when not ``packed``, one at the ``last``). A build of 3.7 x 10^6 random points took 0.91
+    of the unfused one's time, of 3 x 10^5 0.94-0.98 (timed in turn in one process). Returns
+    the new ``(ids, rel)`` and each position's node at the next level (2k, or 2k + 1 where
+    it went right; unchanged outside the level; None after the ``last``)."""
     n = dr.width(position)
     first = dr.gather(mi.UInt32, node_first, level_node, in_level)
     median = dr.gather(mi.UInt32, node_median, level_node, in_level)
