@@ -114,8 +114,9 @@ def pack_power(flux, order):
     variant. A channel per kernel (one random read each, see
     :func:`~mi_partpm.photons.gather_each`), each written into its place of the packed array.
     :func:`~mi_partpm.kdtree.rows_in_order` would be faster (3.7 x 10^6 photons: 17 against
-    39 ms with this function's zero-filled output) but its packed copy of the power lies at the render's peak: 10^7 photons emitted
-    peaked at 1.22 against 1.09 GB of Dr.Jit's buffers with it."""
+    39 ms with this function's zero-filled output) but its packed copy of the power lies at
+    the render's peak: 10^7 photons emitted peaked at 1.22 against 1.09 GB of Dr.Jit's
+    buffers with it."""
     channels = spectrum_channels()
     if channels == 1:
         return gather_each(mi.Float(flux[0] if dr.depth_v(flux) > 1 else flux), order)

@@ -25,8 +25,8 @@ them back in the order of the photons without a sort, so every run gives the sam
 A pilot batch of a sixteenth of a batch measures the photons stored per path first, and the
 later batches size their buffers from it, with room for a part-full run of slots per lane
 at work; a batch whose lanes claim more slots than its buffer holds is traced again with a
-buffer that holds them (the streams are deterministic, so the photons are the same). The result is :class:`~mi_partpm.photons.Photons`, on the
-device.
+buffer that holds them (the streams are deterministic, so the photons are the same). The
+result is :class:`~mi_partpm.photons.Photons`, on the device.
 """
 from __future__ import annotations
 

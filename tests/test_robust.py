@@ -221,7 +221,7 @@ def test_a_buffer_too_small_for_the_runs_traces_the_batch_again(monkeypatch, slo
     monkeypatch.setattr(trace, "run_slack", lambda lanes, run: 0)
     calls.clear()
     small, _ = run.batch(lane_map, lane_index, per_lane=per_lane)
-    first_buffer = -(-max(1024, int(20_000 * per_lane * 1.25)) // slot_run) * slot_run
+    first_buffer = trace._round_up(max(1024, int(20_000 * per_lane * 1.25)), slot_run)
     assert len(calls) >= 2 and (len(small) <= first_buffer) == photons_fit
     for field in ("points", "code", "flux", "maps", "bounces"):
         np.testing.assert_array_equal(np.asarray(getattr(roomy, field)),

@@ -517,7 +517,6 @@ def _partition_levels(coord, map_ids, counts, starts, depth, node_base, nodes):
         ids, rel, node_in_map = _partition_level(ids, rel, first, median, axis, level_node,
                                                  in_level, node_in_map, position, last,
                                                  largest < 1 << 16)
-        dr.eval(nodes)
     return ids
 
 
