@@ -44,6 +44,9 @@ from mi_partpm.trace import map_sizes, stream_seed, trace_photons
 
 log = logging.getLogger("mi_partpm")
 
+#: ``passes`` of a render that runs passes until its ``time_limit``, given without ``passes``.
+UNTIL_TIME_LIMIT = 2**31 - 1
+
 __all__ = ["PhotonMapper", "Layer", "Term"]
 
 
@@ -396,12 +399,17 @@ class PhotonMapper(mi.SamplingIntegrator):
                 "mean_radius": float(dr.mean(dr.sqrt(state.r2))[0])
                 if hasattr(state, "r2") else None}
         stop = self.time_limit > 0 and elapsed >= self.time_limit and done < self.passes
+        if self.time_limit > 0:
+            # Every process of the render stops after the same pass (the root's clock says
+            # which), or one would wait in the next pass's gather for ever.
+            stop = self.backend.agree(stop)
         info["last"] = stop or done == self.passes
         if self.passes > 1:
             radius = "" if info["mean_radius"] is None else \
                 f", mean radius {info['mean_radius']:.4g}"
             of = f"{self.passes}" if not self.time_limit else \
-                f"at most {self.passes} in {self.time_limit:g} s"
+                f"at most {self.passes} in {self.time_limit:g} s" \
+                if self.passes < UNTIL_TIME_LIMIT else f"as many as fit in {self.time_limit:g} s"
             log.info("pass %d of %s: %d photons so far%s, %.1f s elapsed%s", done, of,
                      info["photons"], radius, elapsed,
                      ", time limit reached" if stop else f", about {info['eta']:.0f} s left")
@@ -435,8 +443,11 @@ class PhotonMapper(mi.SamplingIntegrator):
         eye = self.eye_pass(scene, sampler, ray, None, active, 1.0)
         self._layers = self.layers()
         terms = self.terms(self._layers, width, scene)
+        start = time.perf_counter()
         for pass_index in range(self.passes):
             self._photon_pass(scene, terms, eye.points, width, pass_index=pass_index)
+            if 0 < self.time_limit <= time.perf_counter() - start:
+                break
         self._finish(terms)
         return eye.emitted + _radiance(terms), eye.valid, []
 

@@ -10,7 +10,7 @@ from mi_partpm.backends import BACKENDS, make_backend
 from mi_partpm.estimate import gather_flux
 from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.gather import final_gather
-from mi_partpm.integrators.common import Layer, PhotonMapper, Term
+from mi_partpm.integrators.common import UNTIL_TIME_LIMIT, Layer, PhotonMapper, Term
 from mi_partpm.photonmap import fixed_radius
 from mi_partpm.progressive import RadianceSum, SPPMState, accumulate, radius_schedule
 from mi_partpm.trace import stream_seed
@@ -75,7 +75,8 @@ class PartPMIntegrator(PhotonMapper):
            0.025 with passes > 1, since the radius then only shrinks)
        * - passes
          - |int|
-         - Passes, >= 1; 1 is the paper's single pass. (Default: 1)
+         - Passes, >= 1; 1 is the paper's single pass. (Default: 1, or passes until
+           ``time_limit`` when only that is given)
        * - alpha
          - |float|
          - Fraction of a pass's new photons kept by the radius reduction, in (0, 1):
@@ -83,7 +84,8 @@ class PartPMIntegrator(PhotonMapper):
        * - time_limit
          - |float|
          - Seconds, >= 0: stop after the pass during which this much time has passed and
-           return the image so far; 0 is no limit. (Default: 0)
+           return the image so far; 0 is no limit. Without ``passes``, the render runs
+           passes until then. (Default: 0)
        * - max_depth
          - |int|
          - Longest light path, in segments from the emitter to the camera, as for Mitsuba's
@@ -184,9 +186,11 @@ class PartPMIntegrator(PhotonMapper):
         n = self.params.photon_count
         self.map_count = read_int(props, "map_count", 1, low=1, high=n,
                                   allowed=f"in [1, photon_count = {n}]")
-        self.passes = read_int(props, "passes", 1, low=1)
-        self.alpha = read_float(props, "alpha", 0.7, low=0.0, high=1.0, high_open=True)
         self.time_limit = read_float(props, "time_limit", 0.0, low=0.0, low_open=False)
+        # Without ``passes``, a time limit means passes until it is reached.
+        self.passes = read_int(props, "passes", 1, low=1) \
+            if "passes" in props or not self.time_limit else UNTIL_TIME_LIMIT
+        self.alpha = read_float(props, "alpha", 0.7, low=0.0, high=1.0, high_open=True)
         self.caustic_photon_count = read_int(props, "caustic_photon_count", 0, low=0)
         self.caustic_radius, self.caustic_radius_fraction = _read_radius_pair(
             props, "caustic_radius", "caustic_radius_fraction")

@@ -143,6 +143,10 @@ class Backend:
         process receiving the sum: a progressive pass's flux and photon counts."""
         return values
 
+    def agree(self, stop: bool) -> bool:
+        """Whether every process stops after this pass: the root's ``stop``."""
+        return stop
+
     def collect(self, stats: dict) -> dict:
         """Every process's ``stats`` on the root (for reporting); the root's own is the
         whole job's."""
@@ -185,6 +189,9 @@ class MPIBackend(Backend):
         stats["time_reduce"] = stats.get("time_reduce", 0.0) + time.perf_counter() - t0
         stats["reduce_bytes"] = stats.get("reduce_bytes", 0) + nbytes
         return out
+
+    def agree(self, stop: bool) -> bool:
+        return bool(self.comm.bcast(bool(stop), root=0))
 
     def collect(self, stats: dict) -> dict:
         stats.update(rank=self.comm.rank, ranks=None)

@@ -2,6 +2,7 @@
 Hachisuka's, eq. (2) holds pass by pass, MPI equals local, and the error falls with passes."""
 import json
 from pathlib import Path
+import time
 
 import numpy as np
 import pytest
@@ -128,6 +129,29 @@ def test_time_limit_stops_after_the_pass_that_reaches_it():
     assert img.mean() > 0.05
 
 
+def test_a_time_limit_without_passes_runs_passes_until_it():
+    scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=1)
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 2000, "time_limit": 0.5})
+    seen = []
+    integrator.on_pass = lambda info: seen.append(info["elapsed"])
+    render(scene, integrator)
+    assert integrator.stats["passes"] == len(seen) > 1
+    assert seen[-1] >= 0.5 > seen[-2]
+    # Progressive, so the progressive default radius (1/40 of the box, not 1/20).
+    assert integrator.radius_fraction == 0.025
+
+
+def test_a_time_limit_holds_inside_another_integrator():
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    inner = {"type": "partpm", "photon_count": 2000, "time_limit": 0.5}
+    t0 = time.perf_counter()
+    img = np.array(mi.render(scene, integrator=mi.load_dict({"type": "moment",
+                                                             "nested": inner})))
+    # Each pass of 2000 photons takes milliseconds: the limit, not 2^31 passes, ended it.
+    assert time.perf_counter() - t0 < 30
+    assert np.isfinite(img).all() and img[..., :3].mean() > 0.01
+
+
 @pytest.mark.parametrize("props, message", [
     ({"passes": 0}, r"passes must be an integer >= 1, got 0"),
     ({"alpha": 1.0}, r"alpha must be a finite number in \(0.0, 1.0\), got 1.0"),
@@ -153,3 +177,15 @@ def test_cli_progressive_render_with_checkpoints(tmp_path, capsys, caplog):
     assert main(["render", "cornell_box", "--integrator", "pm", "--passes", "2", "-o",
                  str(out)]) == 2
     assert "--passes apply to --integrator partpm only" in capsys.readouterr().err
+    # Checkpoints are written between passes: a single pass has none to write.
+    assert main(["render", "cornell_box", "--checkpoint-every", "2", "-o", str(out)]) == 2
+    assert "--checkpoint-every writes the image between passes" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("seed", ["-1", "4294967296", "1.5"])
+def test_cli_seed_is_checked_against_what_mi_render_takes(seed, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["render", "cornell_box", "--seed", seed, "-o", str(tmp_path / "x.exr")])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "--seed must be an integer in [0, 4294967295], got" in err and seed in err

@@ -5,8 +5,8 @@ import argparse
 
 from ..props import check_float, check_int
 
-__all__ = ["UsageError", "parse_resolution", "positive_int", "positive_float", "int_list",
-           "setup", "progress", "last_line"]
+__all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
+           "int_list", "setup", "progress", "last_line"]
 
 
 class UsageError(Exception):
@@ -50,6 +50,12 @@ def _integer(text: str) -> int:
 def positive_int(name):
     """An argparse type for an integer >= 1, checked as the props are."""
     return _argument_type(_integer, lambda v: check_int(name, v, low=1))
+
+
+def seed_int(name="--seed"):
+    """An argparse type for a seed: an integer that ``mi.render``'s ``seed`` takes too (32-bit
+    unsigned), since the commands pass it to the eye samples as well as to the photons."""
+    return _argument_type(_integer, lambda v: check_int(name, v, low=0, high=2**32 - 1))
 
 
 def positive_float(name, high=None):

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from .common import parse_resolution, positive_float, positive_int
+from .common import parse_resolution, positive_float, positive_int, seed_int
 
 __all__ = ["build_parser"]
 
@@ -22,7 +22,7 @@ def _scene_options(p, maps_default=8):
                    help="direct light from the maps (paper) or by emitter sampling")
     p.add_argument("--spp", type=positive_int("--spp"), help="samples per pixel")
     p.add_argument("--resolution", type=parse_resolution, help="film size WxH, e.g. 480x480")
-    p.add_argument("--seed", type=int, default=0, help="seed of photons and eye samples")
+    p.add_argument("--seed", type=seed_int(), default=0, help="seed of photons and eye samples")
     p.add_argument("--data", metavar="DIR",
                    help="directory of scene data such as happy_buddha_20k.ply "
                         "(default: $PARTPM_DATA, else the package's copy)")
@@ -73,7 +73,8 @@ def _render_options(sub):
                    help="fraction of a pass's photons kept by the radius reduction, in (0, 1) "
                         "(default 0.7)")
     r.add_argument("--time", type=positive_float("--time"),
-                   help="stop after the pass during which this many seconds have passed")
+                   help="stop after the pass during which this many seconds have passed "
+                        "(without --passes: passes until then)")
     r.add_argument("--checkpoint-every", type=positive_int("--checkpoint-every"), metavar="K",
                    help="write the image so far every K passes")
     _quality_options(r)
@@ -147,7 +148,7 @@ def _experiment_options(sub):
                    help="samples per pixel of the path-traced reference (default 8192)")
     v.add_argument("--methods", default="partpm,pm,path",
                    help="comma-separated methods (default partpm,pm,path)")
-    v.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    v.add_argument("--seed", type=seed_int(), default=0, help="seed (default 0)")
     v.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
     v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
     v.add_argument("--out", required=True, help="output directory (CSV, JSON, plot, reference)")
@@ -161,7 +162,7 @@ def _experiment_options(sub):
     _size_options(e, spp=1, repeats=3, repeats_help="timed passes over every map")
     e.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
                    default=0.05, help="r as a fraction of the scene's longest side (0.05)")
-    e.add_argument("--seed", type=int, default=0, help="photon seed (default 0)")
+    e.add_argument("--seed", type=seed_int(), default=0, help="photon seed (default 0)")
     e.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
     e.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
     e.add_argument("--out", required=True, help="output directory (CSV, JSON, plot, workloads)")
@@ -216,7 +217,7 @@ def _experiment_options(sub):
                         "fitted (default 3)")
     k.add_argument("--threads", type=positive_int("--threads"), default=1,
                    help="Dr.Jit threads of the timed kernels (default 1: one thread's costs)")
-    k.add_argument("--seed", type=int, default=0, help="photon seed (default 0)")
+    k.add_argument("--seed", type=seed_int(), default=0, help="photon seed (default 0)")
     k.add_argument("--check", metavar="DIR",
                    help="another scene's calibration measured earlier (its --out): fit on "
                         "each scene, predict the other's per-map times (timing both scenes in "

@@ -29,6 +29,9 @@ def integrator_desc(args) -> dict:
     if progressive and args.integrator != "partpm":
         raise UsageError(f"{', '.join(progressive)} apply to --integrator partpm only (the "
                          f"progressive photon mapper)")
+    if args.checkpoint_every and not args.time and (args.passes or 1) == 1:
+        raise UsageError("--checkpoint-every writes the image between passes: it needs a "
+                         "progressive render (--passes P > 1, or --time SECONDS)")
     if args.integrator != "path":
         for key, value in (("kernel", args.kernel), ("glossy", args.glossy),
                            ("glossy_samples", args.glossy_samples)):
