@@ -6,7 +6,8 @@ FPGA-class design and are assumptions, not measurements (see the sensitivity swe
 
 TOML layout (every key optional)::
 
-    pe_count = 32                  # processing elements, >= 1
+    pe_count = 32                  # processing elements, >= 1 (for simulate(); the report
+                                   # of 'partpm hwsim' sets P itself and refuses this key)
     clock_hz = 200e6               # PE and network clock
     cycles_per_node = 4            # per kd-tree node visited
     cycles_per_test = 3            # per photon distance test
@@ -74,6 +75,15 @@ COST_SOURCES = ("assumed", "fitted")
 CYCLE_KEYS = ("cycles_per_node", "cycles_per_test", "cycles_per_accumulate", "cycles_per_map")
 
 
+def _whole_ints(obj):
+    """The integer fields of ``obj`` given as whole floats (a TOML ``2e6`` or ``2.0``), checked
+    by ``_check_number(integer=True)``, become ints, as the model's counts and indices need."""
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        if f.type == "int" and isinstance(value, float) and value.is_integer():
+            object.__setattr__(obj, f.name, int(value))
+
+
 def _check_number(owner, name, value, low=0.0, low_open=True, integer=False):
     what = f"{owner}.{name}" if owner else name
     kind = "an integer" if integer else "a finite number"
@@ -98,6 +108,7 @@ class MemoryConfig:
 
     def __post_init__(self):
         _check_number("memory", "sram_bytes", self.sram_bytes, 0, low_open=False, integer=True)
+        _whole_ints(self)
         _check_number("memory", "dram_bytes_per_cycle", self.dram_bytes_per_cycle)
         _check_number("memory", "dram_latency_cycles", self.dram_latency_cycles, 0,
                       low_open=False)
@@ -187,6 +198,7 @@ class PEConfig:
         for name in seconds:
             _check_number("pe", name, getattr(self, name), 0, low_open=False)
         _check_number("pe", "threads", self.threads, 1, low_open=False, integer=True)
+        _whole_ints(self)
         if self.costs == "fitted" and not any(getattr(self, name) for name in seconds):
             raise ValueError(f'pe.costs = "fitted" with no fitted cost: read '
                              f"{self.fitted_costs} with PEConfig.from_file or load_config")
@@ -240,6 +252,7 @@ class HardwareConfig:
             raise ValueError(f"gather_schedule must be one of {', '.join(SCHEDULES)}, got "
                              f"{self.gather_schedule!r}")
         _check_number("", "tile_queries", self.tile_queries, 1, low_open=False, integer=True)
+        _whole_ints(self)
 
     def compute_cycles(self) -> dict:
         """The compute costs the model runs on, in cycles: ``{"node", "test", "found",
@@ -306,13 +319,19 @@ def load_config(path=None, **overrides) -> HardwareConfig:
         with open(path, "rb") as f:
             data = tomllib.load(f)
     data.update(overrides)
-    memory = _from_dict(MemoryConfig, dict(data.pop("memory", {})), "[memory]")
-    gather = _from_dict(GatherConfig, dict(data.pop("gather", {})), "[gather]")
-    energy = _from_dict(EnergyConfig, dict(data.pop("energy", {})), "[energy]")
-    pe = data.pop("pe", {})
-    if not isinstance(pe, dict):
-        raise ValueError(f"pe must be a table, [pe] with costs and fitted_costs, got {pe!r}")
-    pe = _pe_from_dict(dict(pe), Path(path).parent if path else None)
+    tables = {}
+    for name, cls in (("memory", MemoryConfig), ("gather", GatherConfig),
+                      ("energy", EnergyConfig), ("pe", PEConfig)):
+        table = data.pop(name, {})
+        if not isinstance(table, dict):
+            keys = PE_KEYS if name == "pe" else [f.name for f in fields(cls)]
+            raise ValueError(f"{name} must be a table, [{name}] with keys among "
+                             f"{', '.join(keys)}, got {name} = {table!r}")
+        tables[name] = dict(table)
+    memory = _from_dict(MemoryConfig, tables["memory"], "[memory]")
+    gather = _from_dict(GatherConfig, tables["gather"], "[gather]")
+    energy = _from_dict(EnergyConfig, tables["energy"], "[energy]")
+    pe = _pe_from_dict(tables["pe"], Path(path).parent if path else None)
     top = _from_dict(HardwareConfig, data, "the top level")
     if pe.costs == "fitted":
         clash = [k for k in CYCLE_KEYS if k in top]

@@ -153,6 +153,13 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
     renderer, whose sources the version is a hash of: the caller passes it in)."""
     say = progress or (lambda *a: None)
     meta, loads = load_workloads(workload_dir)
+    check_dir = None if check_dir is None else Path(check_dir)
+    if check_dir is not None and not ((check_dir / "meta.json").is_file()
+                                      or (check_dir / "sets.json").is_file()):
+        # Before any simulation, and before the output folder is made.
+        raise ValueError(f"check: {check_dir} holds neither sets.json (calibration sets "
+                         f"written by 'partpm calibrate') nor meta.json (a workloads "
+                         f"directory)")
     say(f"{meta.get('scene', workload_dir)}: n = {', '.join(map(str, sorted(loads)))}, "
         f"{meta['queries']} queries per map")
     out = Path(out_dir)

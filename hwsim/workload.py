@@ -89,21 +89,59 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
         meta.setdefault(key, None)
     for key in ("lanes", "l1_bytes"):
         _optional_count(key, meta[key], f"{meta_path}: ")
+    for key in ("queries", "bytes_per_node", "bytes_per_photon"):
+        if key not in meta:
+            raise ValueError(f"{meta_path}: {key} is missing (format in hwsim/WORKLOAD.md)")
+        _count(key, meta[key], f"{meta_path}: ")
+    files = meta.get("files")
+    if not isinstance(files, dict) or not files:
+        raise ValueError(f"{meta_path}: files must map each n to its file, as "
+                         f'{{"1": "n1.npz", ...}}, got {files!r}')
     loads = {}
-    for n_text, name in meta["files"].items():
-        n = int(n_text)
-        with np.load(d / name) as z:
-            w = MapWorkloads(n=n, **{k: z[k] for k in (
-                "nodes_visited", "photons_tested", "photons_found", "map_photons",
-                "map_bytes", "map_seconds")}, bytes_per_node=int(meta["bytes_per_node"]),
-                bytes_per_photon=int(meta["bytes_per_photon"]))
-        for k in ("nodes_visited", "photons_tested", "photons_found"):
-            shape = getattr(w, k).shape
-            if shape != (n, meta["queries"]):
-                raise ValueError(f"{d / name}: {k} has shape {shape}, expected "
-                                 f"({n}, {meta['queries']})")
-        loads[n] = w
+    for n_text, name in files.items():
+        n = _count("files: n", int(n_text) if str(n_text).isdigit() else n_text,
+                   f"{meta_path}: ")
+        loads[n] = _load_map_workloads(d / name, n, meta)
     return meta, loads
+
+
+#: The arrays of one n's file, and their shape in terms of (n, Q); map_seconds is (n, R).
+_ARRAYS = {"nodes_visited": "nq", "photons_tested": "nq", "photons_found": "nq",
+           "map_photons": "n", "map_bytes": "n", "map_seconds": "nr"}
+
+
+def _load_map_workloads(path: Path, n: int, meta: dict) -> MapWorkloads:
+    """One n's :class:`MapWorkloads`, every array checked: present, of its shape, finite and
+    >= 0, and no query finding more photons than it tested."""
+    if not path.is_file():
+        raise ValueError(f"{path} is missing (listed in meta.json's files)")
+    q = meta["queries"]
+    arrays = {}
+    with np.load(path) as z:
+        for k, kind in _ARRAYS.items():
+            if k not in z:
+                raise ValueError(f"{path}: {k} is missing (format in hwsim/WORKLOAD.md)")
+            a = z[k]
+            ok = {"nq": a.shape == (n, q), "n": a.shape == (n,),
+                  "nr": a.ndim == 2 and a.shape[0] == n}[kind]
+            if not ok:
+                want = {"nq": f"({n}, {q})", "n": f"({n},)", "nr": f"({n}, repeats)"}[kind]
+                raise ValueError(f"{path}: {k} has shape {a.shape}, expected {want}")
+            if a.size and not (np.all(np.isfinite(a)) and a.min() >= 0):
+                raise ValueError(f"{path}: {k} must be finite and >= 0, got a minimum of "
+                                 f"{a.min()}")
+            arrays[k] = a
+    if np.any(arrays["photons_found"] > arrays["photons_tested"]):
+        raise ValueError(f"{path}: photons_found exceeds photons_tested for some query (a "
+                         f"query finds only photons it tested)")
+    return MapWorkloads(n=n, **arrays, bytes_per_node=int(meta["bytes_per_node"]),
+                        bytes_per_photon=int(meta["bytes_per_photon"]))
+
+
+def _count(key: str, v, where: str = "") -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise ValueError(f"{where}{key} must be an integer >= 1, got {v!r}")
+    return v
 
 
 def _optional_count(key: str, v, where: str = ""):

@@ -804,6 +804,70 @@ def test_hwsim_cli(tmp_path, capsys):
     assert "gather.topology must be one of bus, tree, ring" in capsys.readouterr().err
 
 
+def test_hwsim_cli_refuses_pe_count_and_a_missing_check_before_any_work(tmp_path, capsys):
+    from mi_partpm.cli import main
+    workloads = str(_synthetic_dir(tmp_path))
+    cfg = tmp_path / "pe4.toml"
+    cfg.write_text("pe_count = 4\n")     # the report sets P itself: the key would do nothing
+    assert main(["hwsim", workloads, "--config", str(cfg), "--out", str(tmp_path / "a")]) == 2
+    assert "pe_count in" in capsys.readouterr().err and not (tmp_path / "a").exists()
+    assert main(["hwsim", workloads, "--check", str(tmp_path / "nowhere"), "--out",
+                 str(tmp_path / "b")]) == 2
+    assert "holds neither sets.json" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()
+
+
+def test_integer_keys_given_as_whole_floats_are_integers(tmp_path):
+    path = tmp_path / "hw.toml"
+    path.write_text("tile_queries = 256.0\n[memory]\ndram_channels = 2.0\nsram_bytes = 2e6\n")
+    cfg = load_config(path)
+    assert (cfg.tile_queries, cfg.memory.dram_channels, cfg.memory.sram_bytes) == \
+        (256, 2, 2_000_000)
+    assert all(type(v) is int for v in (cfg.tile_queries, cfg.memory.dram_channels,
+                                         cfg.memory.sram_bytes))
+    w = workload([[4, 2], [3, 1]], [[8, 4], [6, 2]], [[2, 1], [1, 0]])
+    assert simulate(cfg.with_(pe_count=2.0), w).frame_cycles > 0   # ran: no TypeError
+    path.write_text("[memory]\ndram_channels = 2.5\n")
+    with pytest.raises(ValueError, match=r"memory.dram_channels must be an integer >= 0, "
+                                         r"got 2.5"):
+        load_config(path)
+
+
+@pytest.mark.parametrize("text", ["memory = 5", 'gather = "tree"', "energy = [1, 2]"])
+def test_a_group_that_is_not_a_table_is_named(tmp_path, text):
+    path = tmp_path / "hw.toml"
+    path.write_text(text + "\n")
+    group = text.split()[0]
+    with pytest.raises(ValueError, match=rf"{group} must be a table, \[{group}\] with keys "
+                                         rf"among"):
+        load_config(path)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda meta, z: z.update(nodes_visited=-z["nodes_visited"].astype(np.int64)),
+     r"nodes_visited must be finite and >= 0"),
+    (lambda meta, z: z.update(photons_found=z["photons_tested"] + 1),
+     r"photons_found exceeds photons_tested"),
+    (lambda meta, z: z.pop("map_bytes"), r"map_bytes is missing"),
+    (lambda meta, z: meta.pop("files"), r"files must map each n to its file"),
+    (lambda meta, z: meta.pop("bytes_per_node"), r"bytes_per_node is missing"),
+    (lambda meta, z: meta.update(queries=0), r"queries must be an integer >= 1, got 0"),
+])
+def test_a_broken_workload_names_the_file_and_the_fault(tmp_path, change, message):
+    import json
+    from hwsim.workload import load_workloads
+    d = _synthetic_dir(tmp_path)
+    meta = json.loads((d / "meta.json").read_text())
+    name = next(iter(meta["files"].values()))
+    with np.load(d / name) as f:
+        z = dict(f)
+    change(meta, z)
+    (d / "meta.json").write_text(json.dumps(meta))
+    np.savez(d / name, **z)
+    with pytest.raises(ValueError, match=message):
+        load_workloads(d)
+
+
 def test_hwsim_never_imports_mitsuba():
     import subprocess
     code = ("import sys, hwsim.config, hwsim.model, hwsim.events, hwsim.networks, hwsim.work, hwsim.collective, "

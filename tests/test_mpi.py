@@ -142,6 +142,14 @@ def test_mpi_backend_without_mpi4py_says_what_to_install(monkeypatch):
         mi.load_dict({"type": "partpm", "map_count": 2, "backend": "mpi"})
 
 
+def test_the_cli_prints_an_error_without_its_class_name(monkeypatch, tmp_path, capsys):
+    monkeypatch.setitem(sys.modules, "mpi4py", None)
+    assert main(["render", "cornell_box", "--maps", "2", "--resolution", "8x8", "--backend",
+                 "mpi", "-o", str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err
+    assert "partpm: error: backend 'mpi' needs mpi4py" in err and "MPIUnavailable" not in err
+
+
 def test_backend_prop_is_checked():
     with pytest.raises(Exception, match=r"backend must be one of 'local', 'mpi', got 'gpu'"):
         mi.load_dict({"type": "partpm", "backend": "gpu"})

@@ -177,6 +177,9 @@ def test_calibrate_writes_sets_with_their_leaf_size_and_radius(tmp_path, capsys)
     before = (out / "sets" / "leaf4_r0.05" / "n1.npz").read_bytes()
     assert main(["calibrate", "--refit", "--check", str(out), "--out", str(out), "-q"]) == 0
     again = json.loads((out / "calibration.json").read_text())
+    # A scene with --refit would be ignored: refused instead.
+    assert main(["calibrate", "cornell_box", "--refit", "--out", str(out), "-q"]) == 2
+    assert "SCENE (cornell_box) does not apply" in capsys.readouterr().err
     assert (out / "sets" / "leaf4_r0.05" / "n1.npz").read_bytes() == before
     assert [d["fit_on"] for d in again["check"]["directions"]] == ["cornell_box_diffuse"] * 2
     d = again["check"]["directions"][0]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 
 from ..props import check_float, check_int
 
@@ -111,7 +112,5 @@ def last_line(e: Exception) -> str:
     while e.__cause__ is not None:
         e = e.__cause__
     line = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
-    for prefix in ("ValueError: ", "RuntimeError: ", "FileNotFoundError: "):
-        if line.startswith(prefix):
-            line = line[len(prefix):]
-    return line
+    # The exception's class name, which the traceback's last line starts with.
+    return re.sub(r"^(?:\w+\.)*[A-Z]\w*(?:Error|Exception|Unavailable): ", "", line)

@@ -48,12 +48,23 @@ def run_bench(args) -> int:
     return 0
 
 
+def _toml(path) -> dict:
+    import tomllib
+    with open(path, "rb") as f:
+        return tomllib.load(f)
+
+
 def run_hwsim(args) -> int:
     from hwsim.config import load_config
     from hwsim.report import format_report, run_report
     from ..experiments.provenance import code_version
     try:
         config = load_config(args.config)
+        if args.config and "pe_count" in _toml(args.config):
+            raise ValueError(f"pe_count in {args.config}: the report sets the PE count "
+                             f"itself (one PE per map at every recorded n, and P = 1, 2, 4, "
+                             f"... n at the largest n); remove the key (it is simulate()'s, "
+                             f"in Python)")
         result = run_report(args.workloads, config, args.out, args.check,
                             progress=progress(args), code=code_version())
     except (OSError, ValueError) as e:
@@ -84,6 +95,9 @@ def run_speedup(args) -> int:
 def run_calibrate(args) -> int:
     from ..experiments import calibrate as cal
     if args.refit:
+        if args.scene:
+            raise UsageError(f"--refit fits the sets already in --out again: SCENE "
+                             f"({' '.join(args.scene)}) does not apply")
         try:
             result = cal.refit(args.out, args.check, progress=progress(args))
         except (OSError, ValueError) as e:
