@@ -10,7 +10,7 @@ from mi_partpm.estimate import knn_flux
 from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.integrators.common import PhotonMapper, Term
 from mi_partpm.progressive import RadianceSum, accumulate
-from mi_partpm.props import read_float, read_int
+from mi_partpm.props import read_bool, read_float, read_int
 
 log = logging.getLogger("mi_partpm")
 
@@ -40,7 +40,13 @@ class PMIntegrator(PhotonMapper):
          - Description
        * - k
          - |int|
-         - Photons per estimate, in [1, photon_count]. (Default: 50)
+         - Photons per estimate, in [2, photon_count]. (Default: 50)
+       * - count_kth
+         - |boolean|
+         - Count the k-th photon, which lies on the circle of radius r, as eq. (1) and
+           Jensen do: the box kernel's estimate is then k / (k - 1) too bright on average
+           (2% at k = 50). False leaves it out and removes that bias (the other kernels
+           weigh it 0 either way). (Default: true)
        * - max_radius
          - |float|
          - Only photons within this distance are searched, > 0; where fewer than k lie
@@ -61,8 +67,10 @@ class PMIntegrator(PhotonMapper):
 
     def read_estimator_props(self, props):
         n = self.params.photon_count
-        self.k = read_int(props, "k", 50, low=1, high=n,
-                          allowed=f"in [1, photon_count = {n}]")
+        # k = 1: pi r^2 then holds no photon on average, and the estimate's mean is unbounded.
+        self.k = read_int(props, "k", 50, low=2, high=n,
+                          allowed=f"in [2, photon_count = {n}]")
+        self.count_kth = read_bool(props, "count_kth", True)
         has_cap = props is not None and "max_radius" in props
         self.max_radius = read_float(props, "max_radius", None, low=0.0) if has_cap else None
         self._acc = None
@@ -99,7 +107,7 @@ class PMIntegrator(PhotonMapper):
             return dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0)
         est = knn_flux(maps, points.si, points.bsdf, self.k, self.max_radius,
                        max_bounce=points.max_bounce, kernel=self.params.kernel,
-                       lobes=estimated_lobes(self.params.glossy))
+                       lobes=estimated_lobes(self.params.glossy), count_kth=self.count_kth)
         counted = dr.isfinite(est.radius2)
         dr.scatter_reduce(dr.ReduceOp.Add, self._acc, dr.sqrt(est.radius2), 0, counted)
         dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 1, counted)
@@ -108,4 +116,5 @@ class PMIntegrator(PhotonMapper):
 
     def to_string(self):
         return (f"PMIntegrator[photon_count = {self.params.photon_count}, k = {self.k}, "
-                f"max_radius = {self.max_radius}, {self.common_props_text()}]")
+                f"max_radius = {self.max_radius}, count_kth = {self.count_kth}, "
+                f"{self.common_props_text()}]")

@@ -211,14 +211,28 @@ def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, act
                     stats if with_stats else None)
 
 
+def _inside(d2, r2):
+    """The box kernel without the circle itself: weight 1 strictly within r."""
+    return dr.select(d2 < r2, 1.0, 0.0)
+
+
 def knn_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, k: int, max_radius=None,
              active=True, with_stats: bool = False, max_bounce=None, kernel: str = "box",
-             order: str = "morton", lobes=None, walk: str = "group") -> Flux:
+             order: str = "morton", lobes=None, walk: str = "group",
+             count_kth: bool = True) -> Flux:
     """The conventional (Jensen) estimate's flux: the k nearest photons, r = distance to the
     k-th. Where fewer than k are found, r is ``max_radius`` as in Jensen's
     ``locate_photons``, or without a cap the distance to the farthest one found. Arguments
-    as for :func:`gather_flux`; ``walk`` as for :func:`~mi_partpm.kdtree.knn_query`."""
+    as for :func:`gather_flux`; ``walk`` as for :func:`~mi_partpm.kdtree.knn_query`.
+
+    ``count_kth``: eq. (1) counts the k-th photon, which lies on the circle by construction;
+    under a uniform density pi r^2 then holds k - 1 photons on average (pi r^2 times the
+    density is Gamma(k)-distributed), so the box kernel's estimate is k / (k - 1) too bright.
+    False leaves it out (photons strictly within r), which removes that bias; the other
+    kernels weigh a photon on the circle 0 and are unbiased either way."""
     est = _Estimator(maps, si, bsdf, active, 0.0, max_bounce, kernel, lobes)
+    if not count_kth and est.weight is None:
+        est.weight = _inside
     res = knn_query(maps.forest, si.p, k, est.contribution, mi.Spectrum, max_radius,
                     est.active, with_stats=with_stats, accept=est.accept(), state=est.lane,
                     order=order, walk=walk, with_payload=True)

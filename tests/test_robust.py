@@ -283,22 +283,24 @@ def grazing_references():
 #:   (most of it) is exact; the indirect comes from photons spread over a ball of radius 2,
 #:   which dilutes it. Bound 0.85-1.1; direct light counted twice (photons and nee) would
 #:   give 1.9 or more.
-#: - pm, k = 1: 4.4-9.2. r is the distance to the nearest photon, whose square is
-#:   exponentially distributed for photons scattered at random, so 1 / (pi r^2) has no
-#:   finite mean: the estimate is right in the median and unbounded in the mean (per pixel,
-#:   the median share is 4.3-6.0 of path's). Bound 1-40: a black estimate, or one divided by
-#:   r instead of r^2 (r is about 0.02: 50x), fails.
+#: - pm, k = 2 (the smallest k: at k = 1 the estimate's mean is unbounded, since pi r^2 times
+#:   the density is exponentially distributed): 1.76-2.16, k / (k - 1) = 2 as expected of
+#:   eq. (1), which counts the second photon, on the circle. Without it (count_kth false):
+#:   0.87-1.26. Bounds 1.3-3.0 and 0.6-1.6: a black estimate, one divided by r instead of
+#:   r^2 (r is about 0.02: 50x), or count_kth doing nothing, fails.
 GRAZING = [
     ({"type": "partpm", "radius": 1e-6}, (-0.02, 0.02)),
     ({"type": "partpm", "radius": 100.0}, (-0.02, 0.02)),
     ({"type": "partpm", "radius_fraction": 1.0, "map_count": 7, "direct": "nee"}, (0.85, 1.1)),
-    ({"type": "pm", "k": 1}, (1.0, 40.0)),
+    ({"type": "pm", "k": 2}, (1.3, 3.0)),
+    ({"type": "pm", "k": 2, "count_kth": False}, (0.6, 1.6)),
     ({"type": "pm", "k": 5000, "max_radius": 1e-5}, (-0.02, 0.02)),
 ]
 
 
 @pytest.mark.parametrize("integrator, share_bounds", GRAZING,
-                         ids=["r=1e-6", "r=100", "r=scene,nee", "pm k=1", "pm capped 1e-5"])
+                         ids=["r=1e-6", "r=100", "r=scene,nee", "pm k=2", "pm k=2 inside",
+                              "pm capped 1e-5"])
 def test_every_pixel_is_finite(grazing_references, integrator, share_bounds):
     """Extreme radii at grazing angles: every pixel finite, and the photon maps' share of
     the light on the lit pixels what the estimator really gives (see GRAZING). Rendered at
