@@ -40,7 +40,7 @@ from mi_partpm.eyepath import eye_paths
 from mi_partpm.photonmap import build_photon_maps
 from mi_partpm.props import UNLIMITED_DEPTH, read_photon_map_params
 from mi_partpm.timing import Stopwatch
-from mi_partpm.trace import map_sizes, stream_seed, trace_photons
+from mi_partpm.trace import check_emitters, map_sizes, stream_seed, trace_photons
 
 log = logging.getLogger("mi_partpm")
 
@@ -276,6 +276,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             raise ValueError(f"develop=False is not supported with backend={self.backend.name!r}"
                              f": render with develop=True")
         with self.backend.running():
+            check_emitters(scene)            # before any work: a scene it cannot render
             seed = _as_int(seed)
             self.radius = self.search_radius(scene)
             self._start_stats(seed)
@@ -437,6 +438,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             raise ValueError(f"{type(self).__name__} with backend={self.backend.name!r} "
                              f"must be the scene's top-level integrator (its ranks gather "
                              f"whole images); use backend='local' inside moment or aov")
+        check_emitters(scene)
         width = dr.width(ray.o)
         self.radius = self.search_radius(scene)
         self._start_stats(0)

@@ -58,6 +58,13 @@ def _root(e):
      r"emitter on shape 'lamp' \(AreaLight\) emits negative power"),
     ('<scene version="3.0.0"><shape type="rectangle"><emitter type="area"/></shape></scene>',
      r"has no sensor"),
+    ('<scene version="3.0.0"><sensor type="perspective"/><emitter type="constant"/>'
+     '<shape type="sphere" id="fog"><bsdf type="null"/><medium type="homogeneous" '
+     'name="interior"/></shape></scene>',
+     r"has a participating medium \(shape 'fog' bounds one\).*use Mitsuba's volpath"),
+    ('<scene version="3.0.0"><emitter type="constant"/><shape type="sphere"/>'
+     '<sensor type="perspective" id="cam"><medium type="homogeneous"/></sensor></scene>',
+     r"participating medium around its sensor 'cam'"),
 ])
 def test_cli_bad_scene_files(tmp_path, capsys, xml, message):
     path = tmp_path / "scene.xml"

@@ -117,3 +117,16 @@ def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool 
                          f"at least one light)")
     if needs_sensor and not scene.sensors():
         raise ValueError(f"{what} has no sensor: add a camera to render it")
+    # Photons and eye paths travel through vacuum only: a medium would be passed through as
+    # if it were not there, and the image would be wrong without a word.
+    for shape in scene.shapes():
+        if shape.is_medium_transition():
+            shape_name = repr(shape.id()) if shape.id() else f"a {shape.class_name()}"
+            raise ValueError(f"{what} has a participating medium (shape {shape_name} bounds "
+                             f"one): photon mapping here renders surfaces only; use "
+                             f"Mitsuba's volpath for scenes with media")
+    for sensor in scene.sensors():
+        if sensor.get_medium() is not None:
+            raise ValueError(f"{what} has a participating medium around its sensor "
+                             f"{sensor.id()!r}: photon mapping here renders surfaces only; "
+                             f"use Mitsuba's volpath for scenes with media")
