@@ -56,6 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _render_options(sub):
     r = sub.add_parser("render", help="render a scene with partpm, pm or Mitsuba's path tracer")
     _scene_options(r)
+    # Unset unless given, so that an option the chosen integrator ignores can be refused.
+    r.set_defaults(photons=None, direct=None)
     r.add_argument("--integrator", choices=("partpm", "pm", "path"), default="partpm")
     g = r.add_mutually_exclusive_group()
     g.add_argument("--radius", type=positive_float("--radius"),

@@ -20,9 +20,17 @@ def integrator_desc(args) -> dict:
     """The ``mi.load_dict`` description of the integrator the options ask for."""
     if args.integrator == "path":
         desc = {"type": "path", "max_depth": args.max_depth}
+        photon_options = [o for o, v in (
+            ("--photons", args.photons), ("--maps", args.maps), ("--direct", args.direct),
+            ("--radius", args.radius), ("--radius-fraction", args.radius_fraction),
+            ("--k", args.k), ("--max-radius", args.max_radius)) if v is not None]
+        if photon_options:
+            raise UsageError(f"{', '.join(photon_options)} apply to the photon mappers "
+                             f"(--integrator partpm or pm), not to path")
     else:
-        desc = {"type": args.integrator, "photon_count": args.photons, "seed": args.seed,
-                "max_depth": args.max_depth, "direct": args.direct}
+        desc = {"type": args.integrator, "photon_count": args.photons or 100_000,
+                "seed": args.seed, "max_depth": args.max_depth,
+                "direct": args.direct or "photons"}
     progressive = [o for o, v in (("--passes", args.passes), ("--alpha", args.alpha),
                                   ("--time", args.time),
                                   ("--checkpoint-every", args.checkpoint_every)) if v]
