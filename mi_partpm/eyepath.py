@@ -18,6 +18,7 @@ photons of b segments if e + b <= max_depth.
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import drjit as dr
@@ -26,6 +27,8 @@ import numpy as np
 
 from .kdtree import morton_order
 from .props import UNLIMITED_DEPTH, segment_limit
+
+log = logging.getLogger("mi_partpm")
 
 __all__ = ["EyePaths", "VisiblePoints", "eye_paths", "direct_light", "first_hits",
            "lands_on", "passes_through",
@@ -61,6 +64,58 @@ def lobe_context(lobes=None) -> mi.BSDFContext:
     if lobes is not None:
         ctx.type_mask = lobes
     return ctx
+
+
+#: Names of the BSDFs already reported as not splitting their lobes (one warning each).
+_UNSPLIT_WARNED = set()
+
+
+def _splits_lobes(bsdf, samples: int = 64) -> bool:
+    """Whether ``bsdf`` (with diffuse and glossy lobes) takes its lobes apart by
+    ``BSDFContext.type_mask``, as ``glossy = "trace"`` needs: its diffuse and its glossy and
+    delta lobes evaluated alone add up to all of them, on ``samples`` pairs of directions
+    above a flat surface (Mitsuba's ``principled`` ignores the mask and evaluates every lobe
+    under any of them, so a split would count its diffuse lobe twice)."""
+    rng = np.random.default_rng(0)
+    u = [mi.Float(a) for a in rng.random((6, samples)).astype(np.float32)]
+    si = dr.zeros(mi.SurfaceInteraction3f, samples)
+    si.n = mi.Normal3f(0, 0, 1)
+    si.sh_frame = mi.Frame3f(si.n)
+    si.uv = mi.Point2f(u[0], u[1])
+    si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u[2], u[3]))
+    wo = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u[4], u[5]))
+    values = [np.array(bsdf.eval(lobe_context(lobes), si, wo)) for lobes in (
+        None, mi.BSDFFlags.Diffuse, mi.BSDFFlags.Glossy | mi.BSDFFlags.Delta)]
+    every, diffuse, rest = values
+    scale = float(np.abs(every).max(initial=0.0))
+    return scale == 0.0 or float(np.abs(diffuse + rest - every).max()) <= 1e-3 * scale
+
+
+def unsplit_bsdfs(scene: mi.Scene) -> mi.UInt32:
+    """Per BSDF registry id: 1 for a BSDF of the scene's shapes with diffuse and glossy lobes
+    that does not take them apart by ``BSDFContext.type_mask`` (:func:`_splits_lobes`), which
+    ``glossy = "trace"`` then treats as ``"map"`` does (a visible point for every lobe), with
+    a warning; 0 elsewhere. Ids beyond the table are BSDFs the shapes do not list: 0."""
+    found = {}
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is None or not (int(bsdf.flags()) & int(mi.BSDFFlags.Diffuse)
+                                and int(bsdf.flags()) & int(mi.BSDFFlags.Glossy)):
+            continue
+        key = int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
+        if key not in found:
+            found[key] = not _splits_lobes(bsdf)
+            name = f"{bsdf.class_name()} {bsdf.id()!r}" if bsdf.id() else bsdf.class_name()
+            if found[key] and name not in _UNSPLIT_WARNED:
+                _UNSPLIT_WARNED.add(name)
+                log.warning("BSDF %s does not evaluate its lobes apart (it ignores "
+                            "BSDFContext.type_mask): with glossy = 'trace' its surfaces are "
+                            "estimated from the maps with every lobe, as with glossy = 'map'",
+                            name)
+    table = np.zeros(max(found, default=0) + 1, dtype=np.uint32)
+    for key, unsplit in found.items():
+        table[key] = unsplit
+    return mi.UInt32(table)
 
 
 def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf,
@@ -205,6 +260,7 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     # With "trace", paths go on through the glossy and delta lobes; the diffuse ones are
     # the visible points'.
     ctx_traced = lobe_context(mi.BSDFFlags.Glossy | mi.BSDFFlags.Delta)
+    unsplit = unsplit_bsdfs(scene) if trace else None
     splits = []
     valid = dr.zeros(mi.Bool, width)
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
@@ -239,6 +295,10 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         if trace:
             traced = active & mi.has_flag(flags, mi.BSDFFlags.Glossy)
             glossy_only = traced & ~mi.has_flag(flags, mi.BSDFFlags.Diffuse)
+            # A BSDF that cannot split its lobes is a visible point for all of them.
+            bsdf_id = dr.reinterpret_array(mi.UInt32, bsdf)
+            traced &= glossy_only | (dr.gather(mi.UInt32, unsplit, bsdf_id, traced & (
+                bsdf_id < dr.width(unsplit))) == 0)
         if depth + 1 < limit:
             smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth) & ~glossy_only
             # One kernel computes the hit and the mask before they are gathered from.
