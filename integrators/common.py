@@ -341,8 +341,16 @@ class PhotonMapper(mi.SamplingIntegrator):
     def _warn_if_empty(self):
         stored = sum(v for k, v in self.stats.items() if k.endswith("photons_stored"))
         if stored == 0:
-            log.warning("no photon was stored: the scene has no surface with a non-delta "
-                        "BSDF lit by its emitters; only emitted light will show")
+            depth = self._photon_depth()
+            if depth != UNLIMITED_DEPTH and depth < self.min_bounce():
+                log.warning("no photon was stored: max_depth = %d %s", self.params.max_depth,
+                            "leaves photons no segment (the camera's takes the only one); only "
+                            "emitted light will show" if depth < 1 else
+                            "leaves photons only direct light, which direct = 'nee' samples "
+                            "instead; the maps add nothing")
+            else:
+                log.warning("no photon was stored: the scene has no surface with a non-delta "
+                            "BSDF lit by its emitters; only emitted light will show")
 
     def _photon_pass(self, scene, terms, points, width: int, sensor=0, spp: int = 0,
                      render_seed: int = 0, pass_index: int = 0, waves=None):
@@ -376,8 +384,24 @@ class PhotonMapper(mi.SamplingIntegrator):
             self._warn_if_empty()
         self.stats["waves"] = len(waves)
         arrays = self.backend.allreduce(sums, self.stats)
+        if pass_index == 0:
+            self._warn_if_none_found(terms, arrays, len(points))
         for j, term in enumerate(terms):
             term.state.update(arrays[2 * j], arrays[2 * j + 1])
+
+    def _warn_if_none_found(self, terms, arrays, visible: int):
+        """Warn when photons were stored and visible points exist but no estimate found a
+        photon (a radius far below the photons' spacing): the maps then add nothing."""
+        stored = sum(v for k, v in self.stats.items() if k.endswith("photons_stored"))
+        if stored == 0 or visible == 0:
+            return
+        for j, term in enumerate(terms):
+            if float(dr.sum(arrays[2 * j + 1])[0]) == 0:
+                radius = "" if self.radius is None else f" (radius {self.radius:.4g})"
+                log.warning("no photon was found at any visible point by the %s estimate%s, "
+                            "though %d were stored: the search is far smaller than the "
+                            "photons' spacing, and the maps add nothing", term.name, radius,
+                            stored)
 
     def _finish(self, terms):
         self.after_estimate()

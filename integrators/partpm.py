@@ -14,8 +14,8 @@ from mi_partpm.integrators.common import UNTIL_TIME_LIMIT, Layer, PhotonMapper, 
 from mi_partpm.photonmap import fixed_radius
 from mi_partpm.progressive import RadianceSum, SPPMState, accumulate, radius_schedule
 from mi_partpm.trace import stream_seed
-from mi_partpm.props import (PROGRESSIVE_RADIUS_FRACTION, RADIUS_FRACTION, read_choice,
-                             read_float, read_int)
+from mi_partpm.props import (MAX_RADIUS, PROGRESSIVE_RADIUS_FRACTION, RADIUS_FRACTION,
+                             read_choice, read_float, read_int)
 
 log = logging.getLogger("mi_partpm")
 
@@ -29,7 +29,8 @@ def _read_radius_pair(props, radius_name: str, fraction_name: str):
     has_fraction = props is not None and fraction_name in props
     if has_radius and has_fraction:
         raise ValueError(f"give either {radius_name} or {fraction_name}, not both")
-    radius = read_float(props, radius_name, None, low=0.0) if has_radius else None
+    radius = read_float(props, radius_name, None, low=0.0, high=MAX_RADIUS) if has_radius \
+        else None
     fraction = read_float(props, fraction_name, None, low=0.0, high=1.0) \
         if has_fraction else None
     return radius, fraction
@@ -66,8 +67,8 @@ class PartPMIntegrator(PhotonMapper):
            (sizes differ by at most one) from its own random stream. (Default: 1)
        * - radius
          - |float|
-         - Fixed (initial) search radius r in world units, > 0. (Default: unset, see
-           radius_fraction)
+         - Fixed (initial) search radius r in world units, in (0, 1e18] (r^2 must be a
+           finite float32). (Default: unset, see radius_fraction)
        * - radius_fraction
          - |float|
          - r as a fraction of the longest side of the scene's bounding box, in (0, 1]; the
@@ -125,8 +126,9 @@ class PartPMIntegrator(PhotonMapper):
            (L {S|G}+ D: the caustic under a rough glass sphere). (Default: 0)
        * - caustic_radius, caustic_radius_fraction
          - |float|
-         - The caustic maps' (initial) radius in world units, or as a fraction of the scene's
-           longest side, in (0, 1]; one of the two. (Default: a quarter of the global radius)
+         - The caustic maps' (initial) radius in world units, in (0, 1e18], or as a
+           fraction of the scene's longest side, in (0, 1]; one of the two. (Default: a
+           quarter of the global radius)
        * - glossy
          - |string|
          - ``map``: every surface with a non-delta lobe takes its estimate from the maps;

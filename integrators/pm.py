@@ -10,7 +10,7 @@ from mi_partpm.estimate import knn_flux
 from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.integrators.common import PhotonMapper, Term
 from mi_partpm.progressive import RadianceSum, accumulate
-from mi_partpm.props import read_bool, read_float, read_int
+from mi_partpm.props import MAX_RADIUS, read_bool, read_float, read_int
 
 log = logging.getLogger("mi_partpm")
 
@@ -49,7 +49,7 @@ class PMIntegrator(PhotonMapper):
            weigh it 0 either way). (Default: true)
        * - max_radius
          - |float|
-         - Only photons within this distance are searched, > 0; where fewer than k lie
+         - Only photons within this distance are searched, in (0, 1e18]; where fewer than k lie
            within it, r = max_radius (Jensen's cap). (Default: unset, no cap)
 
     After a render, ``stats["mean_knn_radius"]`` is the mean r over all estimates, and
@@ -72,7 +72,8 @@ class PMIntegrator(PhotonMapper):
                           allowed=f"in [2, photon_count = {n}]")
         self.count_kth = read_bool(props, "count_kth", True)
         has_cap = props is not None and "max_radius" in props
-        self.max_radius = read_float(props, "max_radius", None, low=0.0) if has_cap else None
+        self.max_radius = read_float(props, "max_radius", None, low=0.0, high=MAX_RADIUS) \
+            if has_cap else None
         self._acc = None
 
     def search_radius(self, scene):

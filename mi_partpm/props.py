@@ -18,13 +18,16 @@ from typing import Optional
 __all__ = ["PhotonMapParams", "check_int", "check_float", "check_bool", "check_choice",
            "read_int", "read_float", "read_bool", "read_choice", "read_photon_map_params",
            "DIRECT_MODES", "UNLIMITED_DEPTH", "segment_limit", "RADIUS_FRACTION",
-           "PROGRESSIVE_RADIUS_FRACTION", "KERNEL_NAMES", "GLOSSY_MODES"]
+           "PROGRESSIVE_RADIUS_FRACTION", "MAX_RADIUS", "KERNEL_NAMES", "GLOSSY_MODES"]
 
 #: ``max_depth`` of -1: no limit (Russian roulette ends the paths), as in Mitsuba.
 UNLIMITED_DEPTH = -1
 
 #: Default radius over the longest side of the scene: the paper's 1/20.
 RADIUS_FRACTION = 0.05
+#: The largest radius a prop may give: its square must be a finite float32 (3.4e38).
+MAX_RADIUS = 1e18
+
 #: Default initial radius of a progressive render (passes > 1): the radius only shrinks, so a
 #: progressive render starts smaller (measured best of 0.05 / 0.025 / 0.0125 at equal time
 #: on the Cornell box: 0.025, with 0.0125 close).
@@ -167,7 +170,7 @@ def read_photon_map_params(props, fixed_radius: bool = True) -> PhotonMapParams:
     if has_radius and has_fraction:
         raise ValueError("give either radius or radius_fraction, not both")
     if has_radius:
-        p.radius = read_float(props, "radius", None, low=0.0)
+        p.radius = read_float(props, "radius", None, low=0.0, high=MAX_RADIUS)
     else:
         if has_fraction:
             p.radius_fraction = read_float(props, "radius_fraction", None, low=0.0, high=1.0)

@@ -248,8 +248,39 @@ def test_scene_where_no_photon_can_be_stored(caplog):
     with caplog.at_level("WARNING", logger="mi_partpm"):
         img = render(scene, integrator)
     assert integrator.stats["photons_stored"] == 0
-    assert "no photon was stored" in caplog.text
+    assert "no photon was stored" in caplog.text and "non-delta" in caplog.text
     np.testing.assert_allclose(img, 1.0, rtol=1e-4)
+
+
+@pytest.mark.parametrize("props, reason", [
+    ({"max_depth": 1}, "max_depth = 1 leaves photons no segment"),
+    ({"max_depth": 2, "direct": "nee"}, "max_depth = 2 leaves photons only direct light"),
+])
+def test_no_photon_stored_because_of_max_depth_says_so(caplog, props, reason):
+    """A diffuse scene stores photons, unless max_depth leaves them no segment to store at:
+    the warning names max_depth, not the scene's surfaces."""
+    scene = small_scene([0, 0, 3], [0, 0, 0], size=8,
+                        floor={"type": "sphere", "radius": 4, "flip_normals": True,
+                               "bsdf": {"type": "diffuse"}},
+                        light={"type": "point", "position": [0, 0, 0], "intensity": 1.0})
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        render(scene, mi.load_dict({"type": "partpm", "photon_count": 1000, **props}))
+    assert reason in caplog.text and "non-delta" not in caplog.text
+
+
+@pytest.mark.parametrize("props", [{"type": "partpm", "radius": 1e-9},
+                                   {"type": "pm", "k": 5, "max_radius": 1e-9}])
+def test_no_photon_found_anywhere_says_so(caplog, props):
+    """Photons stored but a search far smaller than their spacing: the image holds only
+    emitted light, and a warning says why instead of a silent black."""
+    scene = small_scene([0, 0, 3], [0, 0, 0], size=8,
+                        floor={"type": "sphere", "radius": 4, "flip_normals": True,
+                               "bsdf": {"type": "diffuse"}},
+                        light={"type": "point", "position": [0, 0, 0], "intensity": 1.0})
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        img = render(scene, mi.load_dict({"photon_count": 1000, **props}))
+    assert img.max() == 0
+    assert "no photon was found at any visible point by the global estimate" in caplog.text
 
 
 EMITTERS = {
