@@ -158,12 +158,19 @@ def check_fits(estimate: MemoryEstimate, what: str = "this render"):
     free = available_bytes()
     if free is None or estimate.total <= free:
         return
-    fraction = free / estimate.total
+    if estimate.eye >= 0.9 * free:
+        # The eye pass alone does not fit: fewer photons would not help.
+        share = max(free * 0.9 / max(estimate.eye, 1), 0.0)
+        raise MemoryGuardError(
+            f"{what} needs about {estimate.describe()}, but only {free / 1e9:.2f} GB are "
+            f"free, less than its eye pass alone: lower the resolution or spp (to about "
+            f"{share:.2g} of the samples per image here)")
+    fraction = (free - estimate.eye) / max(estimate.photon_maps, 1)
     raise MemoryGuardError(
         f"{what} needs about {estimate.describe()}, but only {free / 1e9:.2f} GB are free: "
         f"lower photon_count (to about {int(estimate.photons * fraction * 0.9):,} per wave "
         f"here), raise map_count (smaller maps make smaller waves), or lower max_depth, or "
-        f"the resolution / spp if the eye pass dominates")
+        f"the resolution / spp (the eye pass takes {estimate.eye / 1e9:.2f} GB)")
 
 
 def wave_budget(eye: int, limit: Optional[int] = None) -> Optional[int]:

@@ -89,6 +89,18 @@ def test_memory_guard_stops_an_oversize_request_before_tracing(monkeypatch, caps
     assert "trace: emitting" not in err                   # stopped before any tracing
 
 
+def test_an_eye_pass_too_large_alone_asks_for_fewer_samples(monkeypatch, capsys, tmp_path):
+    """50 MB free and an eye pass of 480 x 480 x 64 samples: fewer photons cannot help, so
+    the message asks for fewer samples only."""
+    from mi_partpm.cli import main
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "50e6")
+    assert main(["render", "cornell_box", "--photons", "1000", "--maps", "1", "--spp", "64",
+                 "--resolution", "480x480", "-o", str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err
+    assert "less than its eye pass alone: lower the resolution or spp" in err
+    assert "lower photon_count" not in err
+
+
 def test_many_small_maps_fit_where_one_large_map_does_not(monkeypatch):
     """The same 2 x 10^6 photons in 64 maps fit 400 MB, wave by wave."""
     monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "400e6")
