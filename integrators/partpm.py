@@ -191,7 +191,8 @@ class PartPMIntegrator(PhotonMapper):
         self.time_limit = read_float(props, "time_limit", 0.0, low=0.0, low_open=False)
         # Without ``passes``, a time limit means passes until it is reached.
         self.passes = read_int(props, "passes", 1, low=1) \
-            if "passes" in props or not self.time_limit else UNTIL_TIME_LIMIT
+            if (props is not None and "passes" in props) or not self.time_limit \
+            else UNTIL_TIME_LIMIT
         self.alpha = read_float(props, "alpha", 0.7, low=0.0, high=1.0, high_open=True)
         self.caustic_photon_count = read_int(props, "caustic_photon_count", 0, low=0)
         self.caustic_radius, self.caustic_radius_fraction = _read_radius_pair(
