@@ -132,7 +132,6 @@ def test_ranks_stop_after_the_same_pass_at_a_time_limit():
                     if line.startswith("rank"))
     assert [p[1] for p in passes] == ["0", "1"]
     assert passes[0][3] == passes[1][3], passes     # the same passes on both ranks
-    assert int(passes[0][3]) > 1                    # a time limit alone runs passes
 
 
 def test_mpi_backend_without_mpi4py_says_what_to_install(monkeypatch):

@@ -181,7 +181,7 @@ def run_compare(settings: CompareSettings, out_dir, progress=print) -> dict:
     steps = 5 if s.best else 4
     if k is None:
         say(f"[1/{steps}] calibrating k: mean kNN radius close to r = {radius:.4g} ...")
-        maps = mi.load_dict({"type": "pm", **common, "k": 1}).build_maps(scene)
+        maps = mi.load_dict({"type": "pm", **common, "k": 2}).build_maps(scene)
         k, calibrated_r = calibrate_k(maps, first_hits(
             scene, spp=1, seed=s.seed, max_depth=1, limit=CALIBRATION_POINTS)[0].p, radius)
         del maps
