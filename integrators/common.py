@@ -38,7 +38,7 @@ from mi_partpm.backends import LocalBackend
 from mi_partpm.camera import CameraPass
 from mi_partpm.eyepath import eye_paths
 from mi_partpm.photonmap import build_photon_maps
-from mi_partpm.props import UNLIMITED_DEPTH, read_photon_map_params
+from mi_partpm.props import UNLIMITED_DEPTH, read_bool, read_photon_map_params
 from mi_partpm.timing import Stopwatch
 from mi_partpm.trace import check_emitters, map_sizes, stream_seed, trace_photons
 
@@ -95,6 +95,9 @@ class PhotonMapper(mi.SamplingIntegrator):
     fixed_radius = True
 
     def __init__(self, props=None):
+        if props is not None and "hide_emitters" in props:
+            # Mitsuba's base class reads it first, with a message that gives no value.
+            read_bool(props, "hide_emitters", False)
         super().__init__(props if props is not None else mi.Properties())
         self.radius = None
         self._layers = []
@@ -390,17 +393,26 @@ class PhotonMapper(mi.SamplingIntegrator):
             term.state.update(arrays[2 * j], arrays[2 * j + 1])
 
     def _warn_if_none_found(self, terms, arrays, visible: int):
-        """Warn when photons were stored and visible points exist but no estimate found a
-        photon (a radius far below the photons' spacing): the maps then add nothing."""
-        stored = sum(v for k, v in self.stats.items() if k.endswith("photons_stored"))
-        if stored == 0 or visible == 0:
+        """Per term, warn when its maps hold photons and visible points exist but no
+        estimate found a photon (a radius far below the photons' spacing), or when a term's
+        own maps (the caustic ones) hold none: the term then adds nothing."""
+        if visible == 0:
             return
         for j, term in enumerate(terms):
+            prefix = "" if term.name == "global" else f"{term.name}_"
+            stored = int(self.stats.get(f"{prefix}photons_stored", 0))
+            if stored == 0:
+                if prefix:
+                    log.warning("no %s photon was stored: the scene has no such light path "
+                                "(for caustics: emitter, mirror or glass, then a diffuse "
+                                "surface); the %s maps add nothing", term.name, term.name)
+                continue
             if float(dr.sum(arrays[2 * j + 1])[0]) == 0:
-                radius = "" if self.radius is None else f" (radius {self.radius:.4g})"
+                r = self.radius if not prefix else self.stats.get(f"{prefix}radius")
+                radius = "" if r is None else f" (radius {r:.4g})"
                 log.warning("no photon was found at any visible point by the %s estimate%s, "
                             "though %d were stored: the search is far smaller than the "
-                            "photons' spacing, and the maps add nothing", term.name, radius,
+                            "photons' spacing, and those maps add nothing", term.name, radius,
                             stored)
 
     def _finish(self, terms):

@@ -255,8 +255,12 @@ class PartPMIntegrator(PhotonMapper):
         else:
             terms.append(self._points_term("global", by_name["global"], width, self.radius))
         if "caustic" in by_name:
-            r = fixed_radius(scene, self.caustic_radius, self.caustic_radius_fraction
-                             or self.radius_fraction / 4)
+            if self.caustic_radius is None and self.caustic_radius_fraction is None and \
+                    self.params.radius is not None:
+                r = self.params.radius / 4          # a quarter of the global radius given
+            else:
+                r = fixed_radius(scene, self.caustic_radius, self.caustic_radius_fraction
+                                 or self.radius_fraction / 4)
             self.stats["caustic_radius"] = r
             terms.append(self._points_term("caustic", by_name["caustic"], width, r))
         return terms

@@ -268,6 +268,24 @@ def test_no_photon_stored_because_of_max_depth_says_so(caplog, props, reason):
     assert reason in caplog.text and "non-delta" not in caplog.text
 
 
+def test_caustic_maps_default_to_a_quarter_of_an_explicit_radius_and_warn_when_empty(caplog):
+    """A diffuse room has no caustic path: the caustic maps stay empty, and the warning says
+    so (not that the radius is too small). Their radius is a quarter of the global one, also
+    when that one is given as ``radius`` (it was a quarter of the default fraction's)."""
+    scene = small_scene([0, 0, 3], [0, 0, 0], size=8,
+                        floor={"type": "sphere", "radius": 4, "flip_normals": True,
+                               "bsdf": {"type": "diffuse"}},
+                        light={"type": "point", "position": [0, 0, 0], "intensity": 1.0})
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 2000, "radius": 0.4,
+                               "caustic_photon_count": 2000})
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        render(scene, integrator)
+    assert integrator.stats["caustic_radius"] == pytest.approx(0.1)
+    assert integrator.stats["caustic_photons_stored"] == 0
+    assert "no caustic photon was stored" in caplog.text
+    assert "no photon was found" not in caplog.text
+
+
 @pytest.mark.parametrize("props", [{"type": "partpm", "radius": 1e-9},
                                    {"type": "pm", "k": 5, "max_radius": 1e-9}])
 def test_no_photon_found_anywhere_says_so(caplog, props):
