@@ -17,4 +17,6 @@ if MPI.COMM_WORLD.rank == 1:
         return after_pass(pass_index, terms, start + 0.5, image)
     integrator._after_pass = late
 mi.render(scene, integrator=integrator)
-print("rank", MPI.COMM_WORLD.rank, "passes", integrator.stats["passes"], flush=True)
+passes = MPI.COMM_WORLD.gather(integrator.stats["passes"], root=0)
+if MPI.COMM_WORLD.rank == 0:        # one line from one process: ranks' prints interleave
+    print("passes per rank:", *passes, flush=True)
