@@ -270,8 +270,67 @@ def test_knn_on_traced_photons_and_degenerate_sets():
 
 def test_knn_rejects_bad_k():
     forest = build_forest(np.zeros((4, 3)))
-    with pytest.raises(ValueError, match="k must be an integer >= 1, got 0"):
+    with pytest.raises(ValueError, match=r"k must be an integer in \[1, 16384\], got 0"):
         knn_query(forest, mi.Point3f(0, 0, 0), 0)
+    with pytest.raises(ValueError, match=r"k must be an integer in \[1, 16384\], got 70000"):
+        knn_neighbours(forest, np.zeros((1, 3)), 70_000)
+
+
+def _call(kind, forest, q, **kw):
+    if kind == "radius":
+        return radius_query(forest, q, kw.pop("r", 0.1), lambda i, d2, a, s: mi.Float(1.0),
+                            **kw)
+    return knn_query(forest, q, 2, **kw)
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda pts: build_forest(pts.T), r"points must have shape \(N, 3\), got \(3, 99\)"),
+    (lambda pts: build_forest(pts[:, :2]), r"points must have shape \(N, 3\), got \(99, 2\)"),
+    (lambda pts: build_forest(pts, np.full(99, 2**32), 2), r"map_ids must be integers >= 0, "
+                                                           r"< map_count = 2; got values"),
+    (lambda pts: build_forest(pts, np.full(99, 0.5), 2), r"map_ids must be integers"),
+    (lambda pts: build_forest(pts, payload=mi.UInt32([1, 2, 3])),
+     r"payload has 3 entries for 99 points"),
+    (lambda pts: knn_neighbours(build_forest(pts), pts[:5].T, 2),
+     r"points must have shape \(N, 3\), got \(3, 5\)"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:5], r=-0.3),
+     r"r must be >= 0 \(inf for no bound\), got -0.3"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:5], r=mi.Float([0.1, 0.2])),
+     r"r has 2 entries for 5 query points"),
+    (lambda pts: _call("knn", build_forest(pts), pts[:5], max_radius=mi.Float([0.1, -1, 0, 0,
+                                                                                0])),
+     r"max_radius must be >= 0"),
+    (lambda pts: _call("knn", build_forest(pts), pts[:5], active=mi.Bool([True, False])),
+     r"active has 2 entries for 5 query points"),
+    (lambda pts: _call("radius", build_forest(pts), np.array([[0, 0, np.nan]])),
+     r"p: every query point must be finite"),
+    (lambda pts: knn_neighbours(build_forest(pts), np.array([[np.inf, 0, 0]]), 2),
+     r"points: every query point must be finite"),
+])
+def test_bad_input_names_the_argument(make, message):
+    """What scipy refuses (or what would pair the wrong numbers into points, walk the wrong
+    sides of the tree with a negative radius, or wrap map ids past 2^32) is a ValueError that
+    names the argument."""
+    pts = np.random.default_rng(0).random((99, 3))
+    with pytest.raises(ValueError, match=message):
+        make(pts)
+
+
+def test_numpy_and_other_drjit_vectors_are_points_too():
+    """Queries as NumPy arrays, and points as other Dr.Jit 3-vectors, give scipy's answers;
+    zero queries give empty results, as scipy's."""
+    rng = np.random.default_rng(1)
+    pts, q = rng.random((500, 3)), rng.random((7, 3))
+    ref_d, ref_i = cKDTree(pts).query(q, 4)
+    for points in (pts, mi.Vector3f(*pts.T.astype(np.float32)), mi.Point3d(*pts.T)):
+        d, i = knn_neighbours(build_forest(points), q, 4)
+        np.testing.assert_array_equal(i, ref_i)
+        np.testing.assert_allclose(d, ref_d, rtol=1e-5)
+    forest = build_forest(pts)
+    counts = radius_query(forest, q, 0.2, lambda i, d2, a, s: mi.Float(1.0)).numpy()
+    assert counts.tolist() == [len(x) for x in cKDTree(pts).query_ball_point(q, 0.2)]
+    d, i = knn_neighbours(forest, np.zeros((0, 3)), 3)
+    assert d.shape == i.shape == (0, 3)
 
 
 class _KnnState:
@@ -310,13 +369,13 @@ def test_grouped_knn_finds_the_neighbours_of_the_own_walk(monkeypatch):
     distances. Queries on the photons' surfaces, more than SORT_FROM so they are sorted and
     grouped, denser than the photons (as a render's visible points are), a count that leaves
     the last group short; a scalar and a per-lane cap, an accept test that differs per lane,
-    inactive and NaN lanes, a range of maps; then queries too sparse to walk together."""
+    inactive lanes (one holding NaN), a range of maps; then queries too sparse to walk together."""
     from mi_partpm.kdtree import knn as knn_module
     rng = np.random.default_rng(21)
     n, m, k = 30000, 12003, 24
     pts = np.c_[rng.random((n, 2)), 0.02 * rng.random(n)].astype(np.float32)
     queries = np.c_[0.4 * rng.random((m, 2)), 0.02 * rng.random(m)].astype(np.float32)
-    queries[5] = np.nan
+    queries[3] = np.nan                  # an inactive lane: NaN is refused in active ones
     forest = build_forest(pts, rng.integers(0, 3, n), 3)
     q = mi.Point3f(*[mi.Float(queries[:, j]) for j in range(3)])
     active = mi.Bool(np.arange(m) % 97 != 3)
@@ -350,7 +409,8 @@ def test_grouped_knn_finds_the_neighbours_of_the_own_walk(monkeypatch):
         # keeps: 5-22% here in groups of 8, 10-29% in groups of 16); then the own walk of
         # the comparison.
         size = group_lanes(q)
-        assert lanes[0] == -(-m // size) and len(lanes) == 3 and lanes[1] < m / 3, lanes
+        assert lanes[0] == -(-m // size) and lanes[-1] == m, lanes
+        assert len(lanes) == 2 or (len(lanes) == 3 and lanes[1] < m / 3), lanes
     _check_knn_against_scipy(pts, queries[np.isfinite(queries).all(1)], k)
     # Queries farther apart than their neighbours (on the whole slab): most walk on their own.
     sparse = mi.Point3f(*[mi.Float(a) for a in (rng.random(m), rng.random(m),
@@ -358,17 +418,19 @@ def test_grouped_knn_finds_the_neighbours_of_the_own_walk(monkeypatch):
     _assert_same_answers(*_knn_both_walks(forest, sparse, k, lambda i, d2, a, s: d2))
     # Fewer photons than k (in the maps asked for), and fewer queries than SORT_FROM: the own
     # walk alone (they are not sorted, so a group's lanes would lie apart).
-    _assert_same_answers(*_knn_both_walks(build_forest(pts[:20]), q, k))
+    _assert_same_answers(*_knn_both_walks(build_forest(pts[:20]), q, k, active=active))
     lanes.clear()
     few = mi.Point3f(*[mi.Float(queries[:1000, j]) for j in range(3)])
-    _assert_same_answers(*_knn_both_walks(forest, few, k))
+    _assert_same_answers(*_knn_both_walks(forest, few, k,
+                                          active=mi.Bool(np.arange(1000) % 97 != 3)))
     assert lanes == [1000, 1000]
     # Whatever the bound or the room, the lanes the grouped walk cannot settle are walked on
     # their own: no room beyond k, a first ball of only the leader's radius, one bin.
     for name, value in (("KNN_KEEP", 1), ("KNN_REACH", 0.0), ("KNN_BINS", 1)):
         with monkeypatch.context() as patch:
             patch.setattr(knn_module, name, value)
-            _assert_same_answers(*_knn_both_walks(forest, q, k, lambda i, d2, a, s: d2))
+            _assert_same_answers(*_knn_both_walks(forest, q, k, lambda i, d2, a, s: d2,
+                                                  active=active))
 
 
 def test_grouped_knn_weighs_by_each_lanes_own_radius():
@@ -615,7 +677,7 @@ def test_leaf_boxes_are_the_bounds_of_their_leaves(layout):
 def test_queries_that_walk_as_a_group_keep_their_own_balls():
     """Morton-sorted neighbours walk the trees as groups (one ball around the group's balls)
     and still find exactly the photons of their own ball: per-query radii from 0 to large,
-    inactive lanes, a query at NaN and one with an infinite radius in the middle of groups,
+    inactive lanes (one of them at NaN) and an infinite radius in the middle of groups,
     checked against scipy and against each lane's own walk. The groups must really walk
     together (their node counts differ from the own walk's on most lanes), and each walk
     tests exactly the photons of the leaves whose bounding box the lane's own ball reaches."""
@@ -629,6 +691,7 @@ def test_queries_that_walk_as_a_group_keep_their_own_balls():
     q[4001] = np.nan
     active = np.ones(9000, bool)
     active[::13] = False
+    active[4001] = False                # NaN queries are refused in active lanes
     forest = build_forest(pts)
     w = rng.random(20_000).astype(np.float32)
     wt = mi.Float(w[forest.order])

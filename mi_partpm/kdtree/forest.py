@@ -43,7 +43,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["Forest", "build_forest", "shared_leaf_size", "morton_codes", "morton_order",
+__all__ = ["Forest", "build_forest", "as_points", "shared_leaf_size", "morton_codes", "morton_order",
            "tree_bytes", "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES",
            "LEAF_BOX_BYTES", "RECORD_FLOATS", "LAYOUTS", "rows_in_order"]
 
@@ -261,10 +261,27 @@ class Forest:
         return self.leaf_table.numpy()
 
 
-def _as_points(points) -> mi.Point3f:
+def as_points(points, name: str = "points") -> mi.Point3f:
+    """``points`` as ``mi.Point3f`` (float32, as everything here computes): a ``mi.Point3f``
+    as it is, another Dr.Jit 3-vector (``Vector3f``, ``Point3d``, ...) converted, or
+    array-like of shape (N, 3) (one point: (3,)). Anything else, e.g. (3, N) or (N, 2), is a
+    ValueError naming ``name`` (NumPy would otherwise pair the wrong numbers into points)."""
     if isinstance(points, mi.Point3f):
         return points
-    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    if dr.is_array_v(points):
+        if dr.depth_v(points) != 2 or dr.size_v(points) != 3:
+            raise ValueError(f"{name} must be a Dr.Jit 3-vector such as mi.Point3f, or an "
+                             f"array of shape (N, 3); got {type(points).__name__}")
+        return mi.Point3f(mi.Float(points.x), mi.Float(points.y), mi.Float(points.z))
+    try:
+        pts = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numbers of shape (N, 3)") from None
+    if pts.ndim == 1 and pts.shape[0] == 3:
+        pts = pts.reshape(1, 3)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {pts.shape}")
+    pts = pts.astype(np.float32)
     return mi.Point3f(*[np.ascontiguousarray(pts[:, a]) for a in range(3)])
 
 
@@ -293,7 +310,7 @@ def morton_order(points) -> np.ndarray:
     in a SIMD packet and one after another in the caches. The queries of :mod:`.radius` and
     :mod:`.knn` put their query points in this order themselves.
     """
-    p = _as_points(points)
+    p = as_points(points)
     if dr.width(p) == 0:
         return np.zeros(0, dtype=np.int64)
     return dr.argsort(morton_codes(p)).numpy().astype(np.int64)
@@ -645,21 +662,27 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     halves. Node ``k`` of level ``d`` in a map of ``c`` photons covers the run
     ``[floor(k c / 2**d), floor((k+1) c / 2**d))``, so its two halves differ by at most one.
     """
-    p = _as_points(points)
+    p = as_points(points)
     n_points = dr.width(p)
     if map_ids is None:
         ids = dr.zeros(mi.UInt32, n_points)
     elif isinstance(map_ids, mi.UInt32):
         ids = map_ids
     else:
-        host = np.asarray(map_ids, dtype=np.int64).reshape(-1)
-        if host.size and host.min() < 0:
-            raise ValueError(f"map_ids must lie in [0, {map_count}), got a minimum of "
-                             f"{host.min()}")
+        host = np.asarray(map_ids)
+        bound = "" if map_count is None else f", < map_count = {map_count}"
+        if host.ndim != 1 or not (np.issubdtype(host.dtype, np.integer) or host.size == 0):
+            raise ValueError(f"map_ids must be integers >= 0{bound}, one per point (shape "
+                             f"(N,)); got dtype {host.dtype}, shape {host.shape}")
+        if host.size and (host.min() < 0 or host.max() > 0xFFFFFFFE):
+            raise ValueError(f"map_ids must be integers >= 0{bound}; got values from "
+                             f"{host.min()} to {host.max()}")
         ids = mi.UInt32(host.astype(np.uint32))
     if map_count is None:
         map_count = int(dr.max(ids)[0]) + 1 if n_points else 1
     _check_input(p, ids, map_count, leaf_size, layout)
+    if payload is not None and dr.width(payload) != n_points:
+        raise ValueError(f"payload has {dr.width(payload)} entries for {n_points} points")
     counts = np.zeros(map_count, dtype=np.int64)
     if n_points:
         largest = int(dr.max(ids)[0])

@@ -18,8 +18,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .forest import Forest
-from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, coordinate,
+from .forest import Forest, as_points
+from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, check_per_query,
+                     check_queries, coordinate,
                      group_balls, group_lanes, leaf_reached, leaf_run, order_queries, permute,
                      photon_payload, photon_position, split_of, tree_row, unpermute,
                      walk_start)
@@ -30,6 +31,9 @@ __all__ = ["knn_query", "KnnResult", "knn_neighbours", "KNN_KEEP", "KNN_REACH", 
 #: The grouped walk keeps up to this many times k of the photons within a lane's bound; a
 #: lane that finds more is walked again on its own.
 KNN_KEEP = 4
+#: The largest k: Dr.Jit's local arrays hold at most 65536 entries, and a grouped walk keeps
+#: up to KNN_KEEP x k candidates per query.
+MAX_K = 65536 // KNN_KEEP
 
 #: A member's ball in the grouped walk: a leader's k-th distance plus this share of the way
 #: to it. With 1 (and an accept test the same for every lane) the ball surely holds k
@@ -153,13 +157,19 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     (below its cap) or more than :data:`KNN_KEEP` x k walks again on its own, so the
     neighbours are exact either way.
     """
-    if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or k < 1:
-        raise ValueError(f"k must be an integer >= 1, got {k!r}")
+    if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or not 1 <= k <= MAX_K:
+        raise ValueError(f"k must be an integer in [1, {MAX_K}], got {k!r} (a query keeps up "
+                         f"to {KNN_KEEP} k candidates in a local array of at most 65536)")
     if walk not in WALKS:
         raise ValueError(f"walk must be one of {', '.join(repr(w) for w in WALKS)}, got "
                          f"{walk!r}")
     result_type = mi.Float if result_type is None else result_type
+    p = as_points(p, "p")
     width = dr.width(p)
+    if max_radius is not None:
+        max_radius = check_per_query(max_radius, "max_radius", width)
+    active = check_per_query(active, "active", width, radius=False)
+    p = check_queries(p, "p", active)
     if max_radius is None:
         r2max = dr.inf
     elif isinstance(max_radius, (int, float)):
@@ -169,8 +179,10 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     if forest.size == 0 or width == 0:
         zeros = dr.zeros(mi.UInt32, width)
         stats = QueryStats(zeros, mi.UInt32(zeros), mi.UInt32(zeros)) if with_stats else None
-        res = KnnResult(dr.zeros(result_type, width), dr.zeros(mi.Float, width) + r2max,
-                        mi.UInt32(zeros), stats)
+        radius2 = dr.zeros(mi.Float, width)
+        if width:
+            radius2 = radius2 + r2max
+        res = KnnResult(dr.zeros(result_type, width), radius2, mi.UInt32(zeros), stats)
         if neighbours:
             return (res, [dr.full(mi.Float, dr.inf, width)] * k,
                     [dr.full(mi.UInt32, 0xFFFFFFFF, width)] * k)
@@ -522,9 +534,15 @@ def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
     Returns ``(distance, index)``, both ``(Q, k)`` and sorted by distance: ``index`` refers
     to the caller's photon order (the ``points`` given to :func:`build_forest`); a missing
     neighbour (fewer than k within ``max_radius``) has distance ``inf`` and index N.
+
+    Differences from scipy: ``points`` must be finite (a ValueError otherwise); a neighbour
+    at exactly ``max_radius`` counts (scipy's ``distance_upper_bound`` is strict); positions
+    are float32, so points closer than float32 resolves (about 1e-7 of their magnitude)
+    coincide. The k neighbours are k separate device arrays: their cost grows faster than k
+    (k = 1000 took seconds for 10 queries); sums over them (:func:`knn_query` with a
+    ``contribution``) do not.
     """
-    q = np.asarray(points, dtype=np.float32).reshape(-1, 3)
-    p = mi.Point3f(q[:, 0], q[:, 1], q[:, 2])
+    p = check_queries(points, "points")
     _, d2, idx = knn_query(forest, p, k, max_radius=max_radius, neighbours=True)
     dr.eval(d2, idx)
     d2 = np.stack([a.numpy() for a in d2], axis=1).reshape(-1, k).astype(np.float64)

@@ -27,8 +27,9 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
-from .forest import RECORD_FLOATS, Forest, morton_codes
+from .forest import RECORD_FLOATS, Forest, as_points, morton_codes
 
 __all__ = ["radius_query", "QueryStats", "order_queries", "group_balls", "group_lanes", "ORDERS",
            "WALKS"]
@@ -96,6 +97,38 @@ def photon_payload(forest: Forest, index, active=True):
     """The 32-bit payloads (``mi.UInt32``) of the photons at tree-order ``index``."""
     return dr.reinterpret_array(mi.UInt32, dr.gather(mi.Float, forest.records,
                                                      RECORD_FLOATS * index + 3, active))
+
+
+def check_queries(p, name: str = "p", active=True) -> mi.Point3f:
+    """The query points ``p`` as ``mi.Point3f`` (array-like (Q, 3) too,
+    :func:`~.forest.as_points`), every ``active`` one finite: a ValueError naming ``name``
+    otherwise (an inactive lane may hold anything)."""
+    p = as_points(p, name)
+    if dr.width(p) == 0:
+        return p
+    finite = dr.isfinite(p.x) & dr.isfinite(p.y) & dr.isfinite(p.z)
+    if not bool(dr.all(finite | ~mi.Bool(active))[0]):
+        raise ValueError(f"{name}: every query point must be finite (NaN or inf found)")
+    return p
+
+
+def check_per_query(value, name: str, width: int, radius: bool = True):
+    """A scalar or one value per query (``width``, or 1): a radius (``radius``: >= 0, inf
+    allowed, NaN not) or a mask. Raises a ValueError naming ``name``."""
+    if isinstance(value, (bool, int, float, np.integer, np.floating)):
+        if radius and not float(value) >= 0:
+            raise ValueError(f"{name} must be >= 0 (inf for no bound), got {value!r}")
+        return value
+    if not dr.is_array_v(value):             # NumPy arrays, lists
+        value = (mi.Float if radius else mi.Bool)(np.asarray(value).reshape(-1))
+    n = dr.width(value)
+    if n not in (1, width):
+        raise ValueError(f"{name} has {n} entries for {width} query points (give one, or "
+                         f"one per query)")
+    if radius and n and not bool(dr.all(mi.Float(value) >= 0)[0]):
+        raise ValueError(f"{name} must be >= 0 (inf for no bound) for every query; a "
+                         f"negative or NaN radius was given")
+    return value
 
 
 def order_queries(p, width: int, order: str):
@@ -268,7 +301,11 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     if walk not in WALKS:
         raise ValueError(f"walk must be one of {', '.join(repr(w) for w in WALKS)}, got "
                          f"{walk!r}")
+    p = as_points(p, "p")
     width = dr.width(p)
+    r = check_per_query(r, "r", width)
+    active = check_per_query(active, "active", width, radius=False)
+    p = check_queries(p, "p", active)
     if forest.size == 0 or width == 0:
         # No photon anywhere: nothing to walk (and no array to gather from).
         zeros = dr.zeros(mi.UInt32, width)
