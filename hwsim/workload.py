@@ -170,6 +170,9 @@ def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: 
     queries = {w.queries for w in loads.values()}
     if len(queries) != 1:
         raise ValueError(f"every n must have the same queries, got counts {sorted(queries)}")
+    if queries == {0}:
+        raise ValueError("a workload needs at least one query (per-query figures divide by "
+                         "the query count)")
     sizes = {(w.bytes_per_photon, w.bytes_per_node) for w in loads.values()}
     if len(sizes) != 1:
         raise ValueError(f"every n must have the same record and node bytes, got {sizes}")

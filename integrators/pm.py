@@ -7,6 +7,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_partpm.estimate import knn_flux
+from mi_partpm.kdtree.knn import MAX_K
 from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.integrators.common import PhotonMapper, Term
 from mi_partpm.progressive import RadianceSum, accumulate
@@ -40,7 +41,7 @@ class PMIntegrator(PhotonMapper):
          - Description
        * - k
          - |int|
-         - Photons per estimate, in [2, photon_count]. (Default: 50)
+         - Photons per estimate, in [2, photon_count], at most 16384. (Default: 50)
        * - count_kth
          - |boolean|
          - Count the k-th photon, which lies on the circle of radius r, as eq. (1) and
@@ -68,8 +69,9 @@ class PMIntegrator(PhotonMapper):
     def read_estimator_props(self, props):
         n = self.params.photon_count
         # k = 1: pi r^2 then holds no photon on average, and the estimate's mean is unbounded.
-        self.k = read_int(props, "k", 50, low=2, high=n,
-                          allowed=f"in [2, photon_count = {n}]")
+        self.k = read_int(props, "k", 50, low=2, high=min(n, MAX_K),
+                          allowed=f"in [2, photon_count = {n}]" if n <= MAX_K else
+                          f"in [2, {MAX_K}] (the most the kNN query keeps)")
         self.count_kth = read_bool(props, "count_kth", True)
         has_cap = props is not None and "max_radius" in props
         self.max_radius = read_float(props, "max_radius", None, low=0.0, high=MAX_RADIUS) \

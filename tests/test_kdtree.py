@@ -331,6 +331,12 @@ def test_numpy_and_other_drjit_vectors_are_points_too():
     assert counts.tolist() == [len(x) for x in cKDTree(pts).query_ball_point(q, 0.2)]
     d, i = knn_neighbours(forest, np.zeros((0, 3)), 3)
     assert d.shape == i.shape == (0, 3)
+    assert build_forest(mi.ScalarPoint3f(1, 2, 3)).size == 1          # one point
+    # An inactive lane may hold any radius, as it may hold any point.
+    r = mi.Float([0.2, float("nan"), -1.0])
+    got = radius_query(forest, q[:3], r, lambda i, d2, a, s: mi.Float(1.0),
+                       active=mi.Bool([True, False, False])).numpy()
+    assert got.tolist() == [len(cKDTree(pts).query_ball_point(q[0], 0.2)), 0, 0]
 
 
 class _KnnState:

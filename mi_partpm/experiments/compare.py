@@ -29,6 +29,7 @@ import numpy as np
 from . import figures, metrics
 from ..eyepath import first_hits
 from ..kdtree import knn_query, radius_query
+from ..kdtree.knn import MAX_K
 from ..photonmap import PhotonMaps, fixed_radius
 from ..props import check_choice, check_float, check_int
 from ..scenes import check_scene, load_scene
@@ -131,8 +132,9 @@ def calibrate_k(maps: PhotonMaps, points: mi.Point3f, radius: float, tolerance: 
     forest = maps.forest
     _, stats = radius_query(forest, points, radius, lambda i, d2, a, s: mi.Float(0.0),
                             with_stats=True)
-    k = int(np.clip(round(float(dr.mean(mi.Float(stats.photons_found))[0])), 1,
-                    maps.photon_count))
+    # pm's k: at least 2, at most what the kNN query keeps (and the photons stored).
+    top = max(2, min(maps.photon_count, MAX_K))
+    k = int(np.clip(round(float(dr.mean(mi.Float(stats.photons_found))[0])), 2, top))
     tried = {}
     for _ in range(max_rounds):
         res = knn_query(forest, points, k)
@@ -140,7 +142,7 @@ def calibrate_k(maps: PhotonMaps, points: mi.Point3f, radius: float, tolerance: 
         tried[k] = mean_r
         if abs(mean_r / radius - 1) < tolerance:
             break
-        k_next = int(np.clip(round(k * (radius / mean_r) ** 2), 1, maps.photon_count))
+        k_next = int(np.clip(round(k * (radius / mean_r) ** 2), 2, top))
         if k_next in tried:
             break
         k = k_next

@@ -268,12 +268,12 @@ def as_points(points, name: str = "points") -> mi.Point3f:
     ValueError naming ``name`` (NumPy would otherwise pair the wrong numbers into points)."""
     if isinstance(points, mi.Point3f):
         return points
-    if dr.is_array_v(points):
-        if dr.depth_v(points) != 2 or dr.size_v(points) != 3:
+    if dr.is_array_v(points) and not dr.is_tensor_v(points) and dr.depth_v(points) == 2:
+        if dr.size_v(points) != 3:
             raise ValueError(f"{name} must be a Dr.Jit 3-vector such as mi.Point3f, or an "
                              f"array of shape (N, 3); got {type(points).__name__}")
         return mi.Point3f(mi.Float(points.x), mi.Float(points.y), mi.Float(points.z))
-    try:
+    try:                                     # NumPy, lists, tensors, one scalar point
         pts = np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be numbers of shape (N, 3)") from None

@@ -166,9 +166,9 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     result_type = mi.Float if result_type is None else result_type
     p = as_points(p, "p")
     width = dr.width(p)
-    if max_radius is not None:
-        max_radius = check_per_query(max_radius, "max_radius", width)
     active = check_per_query(active, "active", width, radius=False)
+    if max_radius is not None:
+        max_radius = check_per_query(max_radius, "max_radius", width, active=active)
     p = check_queries(p, "p", active)
     if max_radius is None:
         r2max = dr.inf

@@ -112,9 +112,10 @@ def check_queries(p, name: str = "p", active=True) -> mi.Point3f:
     return p
 
 
-def check_per_query(value, name: str, width: int, radius: bool = True):
+def check_per_query(value, name: str, width: int, radius: bool = True, active=True):
     """A scalar or one value per query (``width``, or 1): a radius (``radius``: >= 0, inf
-    allowed, NaN not) or a mask. Raises a ValueError naming ``name``."""
+    allowed, NaN not, in every ``active`` lane) or a mask. Raises a ValueError naming
+    ``name``."""
     if isinstance(value, (bool, int, float, np.integer, np.floating)):
         if radius and not float(value) >= 0:
             raise ValueError(f"{name} must be >= 0 (inf for no bound), got {value!r}")
@@ -125,7 +126,8 @@ def check_per_query(value, name: str, width: int, radius: bool = True):
     if n not in (1, width):
         raise ValueError(f"{name} has {n} entries for {width} query points (give one, or "
                          f"one per query)")
-    if radius and n and not bool(dr.all(mi.Float(value) >= 0)[0]):
+    if radius and n and width and not bool(dr.all((mi.Float(value) >= 0)
+                                                  | ~mi.Bool(active))[0]):
         raise ValueError(f"{name} must be >= 0 (inf for no bound) for every query; a "
                          f"negative or NaN radius was given")
     return value
@@ -303,8 +305,8 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
                          f"{walk!r}")
     p = as_points(p, "p")
     width = dr.width(p)
-    r = check_per_query(r, "r", width)
     active = check_per_query(active, "active", width, radius=False)
+    r = check_per_query(r, "r", width, active=active)
     p = check_queries(p, "p", active)
     if forest.size == 0 or width == 0:
         # No photon anywhere: nothing to walk (and no array to gather from).
