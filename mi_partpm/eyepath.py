@@ -208,7 +208,7 @@ def _concat_points(parts) -> VisiblePoints:
 def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_depth: int,
               nee: bool, hide_emitters: bool, active=True, emission: float = 1.0,
               glossy: str = "map", glossy_samples: int = 1, beta=None,
-              seed: int = 0, prev=None) -> EyePaths:
+              seed: int = 0, prev=None, unsplit=None) -> EyePaths:
     """Follow the eye rays ``ray`` (one per lane) through delta bounces.
 
     Parameters
@@ -241,6 +241,9 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     prev : (mi.SurfaceInteraction3f, mi.Float), optional
         Where the rays left a glossy surface and the BSDF's pdf of their direction, for the
         MIS weight of the emission they find (a path continued from a glossy surface).
+    unsplit : mi.UInt32, optional
+        With "trace", :func:`unsplit_bsdfs` of the scene, if the caller has it (the paths
+        continued from a glossy surface get their caller's); found here otherwise.
 
     With "trace", a glossy surface takes direct light by emitter sampling, and the emission
     its sampled ray finds next is weighted against it (multiple importance sampling, power
@@ -260,7 +263,8 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     # With "trace", paths go on through the glossy and delta lobes; the diffuse ones are
     # the visible points'.
     ctx_traced = lobe_context(mi.BSDFFlags.Glossy | mi.BSDFFlags.Delta)
-    unsplit = unsplit_bsdfs(scene) if trace else None
+    if trace and unsplit is None:
+        unsplit = unsplit_bsdfs(scene)
     splits = []
     valid = dr.zeros(mi.Bool, width)
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
@@ -356,7 +360,7 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
             break
     for depth_at, si, beta_at, lanes in splits:
         L = _split_paths(scene, si, beta_at, lanes, depth_at, limit, bounded, rr_depth, nee,
-                         emission, glossy_samples, seed, L, parts, ctx_traced)
+                         emission, glossy_samples, seed, L, parts, ctx_traced, unsplit)
     if not parts:
         parts = [VisiblePoints(dr.zeros(mi.SurfaceInteraction3f, 0), dr.zeros(mi.BSDFPtr, 0),
                                dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0),
@@ -391,7 +395,7 @@ def _emission_mis(scene, prev_si, prev_pdf, si, active):
 
 
 def _split_paths(scene, si, beta, lanes, depth, limit, bounded, rr_depth, nee, emission,
-                 samples, seed, L, parts, ctx):
+                 samples, seed, L, parts, ctx, unsplit):
     """Continue paths from their first glossy surface ``samples`` times through its glossy
     and delta lobes (``ctx``), each with weight 1/samples and a sampler of its own; their
     light is added to ``L`` and their visible points to ``parts``, on the paths' own lanes."""
@@ -406,7 +410,7 @@ def _split_paths(scene, si, beta, lanes, depth, limit, bounded, rr_depth, nee, e
         glossy_pdf = dr.select(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta), 0.0, bs.pdf)
         sub = eye_paths(scene, sampler, ray, left, max(1, rr_depth - depth - 1), nee, False,
                         dr.any(weight != 0), emission, "trace", 1, beta * weight / samples,
-                        seed, prev=(si, glossy_pdf))
+                        seed, prev=(si, glossy_pdf), unsplit=unsplit)
         dr.scatter_add(L, sub.emitted, lanes)
         for points in sub.points.pieces():
             if len(points):
