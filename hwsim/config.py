@@ -317,7 +317,10 @@ def load_config(path=None, **overrides) -> HardwareConfig:
     if path is not None:
         import tomllib
         with open(path, "rb") as f:
-            data = tomllib.load(f)
+            try:
+                data = tomllib.load(f)
+            except tomllib.TOMLDecodeError as e:
+                raise ValueError(f"{path} is not valid TOML: {e}") from None
     data.update(overrides)
     tables = {}
     for name, cls in (("memory", MemoryConfig), ("gather", GatherConfig),

@@ -107,6 +107,9 @@ class PhotonMapper(mi.SamplingIntegrator):
         self.stats = {}
         self.passes, self.alpha, self.time_limit = 1, 0.7, 0.0
         self.on_pass = None
+        #: Called after every pass of a progressive render: True stops it there, as the time
+        #: limit does (the command line's first Ctrl-C); the image has the passes so far.
+        self.stop_requested = None
         self.params = read_photon_map_params(props, fixed_radius=self.fixed_radius)
         self.map_count = 1
         self.backend = LocalBackend()
@@ -435,10 +438,12 @@ class PhotonMapper(mi.SamplingIntegrator):
                 "eta": self._remaining(elapsed, done),
                 "mean_radius": float(dr.mean(dr.sqrt(state.r2))[0])
                 if hasattr(state, "r2") else None}
-        stop = self.time_limit > 0 and elapsed >= self.time_limit and done < self.passes
-        if self.time_limit > 0:
-            # Every process of the render stops after the same pass (the root's clock says
-            # which), or one would wait in the next pass's gather for ever.
+        timed_out = self.time_limit > 0 and elapsed >= self.time_limit
+        asked = self.stop_requested is not None and bool(self.stop_requested())
+        stop = (timed_out or asked) and done < self.passes
+        if self.time_limit > 0 or self.stop_requested is not None:
+            # Every process of the render stops after the same pass (the root's clock and
+            # request say which), or one would wait in the next pass's gather for ever.
             stop = self.backend.agree(stop)
         info["last"] = stop or done == self.passes
         if self.passes > 1:
@@ -447,9 +452,10 @@ class PhotonMapper(mi.SamplingIntegrator):
             of = f"{self.passes}" if not self.time_limit else \
                 f"at most {self.passes} in {self.time_limit:g} s" \
                 if self.passes < UNTIL_TIME_LIMIT else f"as many as fit in {self.time_limit:g} s"
+            ending = (", stopped as asked" if asked else ", time limit reached") if stop \
+                else f", about {info['eta']:.0f} s left"
             log.info("pass %d of %s: %d photons so far%s, %.1f s elapsed%s", done, of,
-                     info["photons"], radius, elapsed,
-                     ", time limit reached" if stop else f", about {info['eta']:.0f} s left")
+                     info["photons"], radius, elapsed, ending)
         if self.on_pass is not None:
             t0 = time.perf_counter()
             self.on_pass(info)
@@ -484,7 +490,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         start = time.perf_counter()
         for pass_index in range(self.passes):
             self._photon_pass(scene, terms, eye.points, width, pass_index=pass_index)
-            if 0 < self.time_limit <= time.perf_counter() - start:
+            if 0 < self.time_limit <= time.perf_counter() - start or \
+                    (self.stop_requested is not None and self.stop_requested()):
                 break
         self._finish(terms)
         return eye.emitted + _radiance(terms), eye.valid, []

@@ -202,6 +202,10 @@ class PartPMIntegrator(PhotonMapper):
             raise ValueError(f"final_gather = {self.final_gather} needs direct = 'nee': "
                              f"direct light at the first hit is sampled, and the global map "
                              f"is read only where the gather rays land")
+        if not self.caustic_photon_count and (self.caustic_radius is not None or
+                                              self.caustic_radius_fraction is not None):
+            raise ValueError("caustic_radius and caustic_radius_fraction are the caustic maps' "
+                             "radius: they need caustic maps (caustic_photon_count > 0)")
         if self.caustic_photon_count and self.caustic_photon_count < self.map_count:
             raise ValueError(f"caustic_photon_count must be 0 (off) or in [map_count = "
                              f"{self.map_count}, ...), got {self.caustic_photon_count}")
@@ -223,8 +227,7 @@ class PartPMIntegrator(PhotonMapper):
         return RADIUS_FRACTION if self.passes == 1 else PROGRESSIVE_RADIUS_FRACTION
 
     def before_estimate(self):
-        log.info("estimate: radius %.4g, %d pass%s ...", self.radius, self.passes,
-                 "" if self.passes == 1 else "es")
+        log.info("estimate: radius %.4g, %s ...", self.radius, self._passes_text())
 
     def layers(self) -> list:
         """The global maps, and the caustic maps when ``caustic_photon_count`` > 0. The global
@@ -296,12 +299,20 @@ class PartPMIntegrator(PhotonMapper):
                             lobes=estimated_lobes(p.glossy),
                             glossy=p.glossy == "trace" and self.caustic_photon_count > 0)
 
+    def _passes_text(self) -> str:
+        """The passes a render runs, in words: "1 pass", "64 passes", "passes until 30 s"."""
+        if self.passes == UNTIL_TIME_LIMIT:
+            return f"passes until {self.time_limit:g} s"
+        limit = f" (at most {self.time_limit:g} s)" if self.time_limit > 0 else ""
+        return f"{self.passes} pass{'' if self.passes == 1 else 'es'}{limit}"
+
     def to_string(self):
         p = self.params
         radius = f"radius = {p.radius}" if p.radius is not None \
             else f"radius_fraction = {self.radius_fraction}"
+        passes = "until time_limit" if self.passes == UNTIL_TIME_LIMIT else self.passes
         return (f"PartPMIntegrator[photon_count = {p.photon_count}, map_count = "
-                f"{self.map_count}, {radius}, passes = {self.passes}, alpha = {self.alpha}, "
+                f"{self.map_count}, {radius}, passes = {passes}, alpha = {self.alpha}, "
                 f"time_limit = {self.time_limit}, caustic_photon_count = "
                 f"{self.caustic_photon_count}, final_gather = {self.final_gather}, "
                 f"maps_per_wave = {self.maps_per_wave}, "

@@ -30,13 +30,14 @@ def supported_variant(variant) -> bool:
             and ("_rgb" in variant or "_mono" in variant) and "polarized" not in variant)
 
 
-def check_variant(variant=None):
+def check_variant(variant=None, hint="mi.set_variant('llvm_ad_rgb')"):
+    """``variant`` (default: the active one) if the plugins run on it; else a ValueError
+    that lists the variants they run on and ends with ``hint``, how to choose one."""
     variant = mi.variant() if variant is None else variant
     if not supported_variant(variant):
         works = [v for v in mi.variants() if supported_variant(v)]
         raise ValueError(f"mi_partpm needs a JIT RGB or mono Mitsuba variant, the active one is "
-                         f"{variant!r}; use one of: {', '.join(works)} (e.g. "
-                         f"mi.set_variant('llvm_ad_rgb'))")
+                         f"{variant!r}; use one of: {', '.join(works)} (e.g. {hint})")
     return variant
 
 

@@ -153,6 +153,17 @@ def test_a_time_limit_holds_inside_another_integrator():
     assert np.isfinite(img).all() and img[..., :3].mean() > 0.01
 
 
+def test_a_stop_request_ends_the_render_after_that_pass():
+    """``stop_requested`` (the command line's first Ctrl-C) ends a progressive render after
+    the pass in which it says so, with the image of the passes so far."""
+    scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=1)
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 2000, "passes": 1000})
+    asked = []
+    integrator.stop_requested = lambda: len(asked.append(1) or asked) >= 3
+    img = render(scene, integrator)
+    assert integrator.stats["passes"] == 3 and np.isfinite(img).all() and img.mean() > 0.05
+
+
 @pytest.mark.parametrize("props, message", [
     ({"passes": 0}, r"passes must be an integer >= 1, got 0"),
     ({"alpha": 1.0}, r"alpha must be a finite number in \(0.0, 1.0\), got 1.0"),
@@ -190,3 +201,90 @@ def test_cli_seed_is_checked_against_what_mi_render_takes(seed, tmp_path, capsys
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert "--seed must be an integer in [0, 4294967295], got" in err and seed in err
+
+
+def _start_render(argv, tmp_path):
+    """``partpm render`` in a process of its own (Ctrl-C is a signal to a process)."""
+    import subprocess
+    import sys
+    env = dict(__import__("os").environ, PYTHONUNBUFFERED="1")
+    return subprocess.Popen([sys.executable, "-m", "mi_partpm.cli", "render", *argv],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            cwd=tmp_path, env=env)
+
+
+def _wait_for(process, text, seconds=120.0):
+    """The output lines of ``process`` up to the first holding ``text``."""
+    import select
+    lines, end = [], time.monotonic() + seconds
+    while time.monotonic() < end:
+        ready, _, _ = select.select([process.stdout], [], [], 1.0)
+        if ready:
+            line = process.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if text in line:
+                return lines
+    process.kill()
+    raise AssertionError(f"no line with {text!r} in: {''.join(lines)}")
+
+
+def test_cli_ctrl_c_ends_a_progressive_render_with_the_image_so_far(tmp_path):
+    """The first Ctrl-C stops a progressive render after the pass in progress and writes the
+    image of the passes so far (exit 0); in a single pass it stops at once with
+    'partpm: interrupted' and exit status 130, not an error about a KeyboardInterrupt."""
+    import signal
+    out = tmp_path / "p.exr"
+    render = _start_render(["cornell_box", "--passes", "100000", "--photons", "2000",
+                            "--resolution", "16x16", "--spp", "1", "-o", str(out)], tmp_path)
+    _wait_for(render, "pass 2 of 100000")
+    render.send_signal(signal.SIGINT)
+    rest, _ = render.communicate(timeout=120)
+    assert render.returncode == 0, rest
+    assert "stopping after this pass" in rest and "stopped as asked" in rest
+    assert out.is_file() and out.with_suffix(".png").is_file()
+    passes = int(rest.split(" passes, ")[0].rsplit(" ", 1)[-1])
+    assert 2 <= passes < 100000
+    img = np.array(mi.Bitmap(str(out)))
+    assert np.isfinite(img).all() and img.mean() > 0.05
+    # No temporary file is left beside the outputs.
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.exr", "p.png"]
+
+    single = tmp_path / "s.exr"
+    render = _start_render(["cornell_box", "--photons", "50000000", "--resolution", "16x16",
+                            "-o", str(single)], tmp_path)
+    _wait_for(render, "scene cornell_box")
+    time.sleep(3.0)                                   # tracing 5 x 10^7 photons by now
+    render.send_signal(signal.SIGINT)
+    rest, _ = render.communicate(timeout=120)
+    assert render.returncode == 130, rest
+    assert rest.strip().splitlines()[-1] == "partpm: interrupted" and not single.exists()
+
+
+def test_cli_renders_a_scene_file_with_its_own_integrator(tmp_path, capsys, caplog):
+    """A scene file's <integrator> renders it when no integrator option is given (as Mitsuba
+    would); any integrator option replaces it, with a warning."""
+    import json
+    text = (Path(mi_partpm.__file__).parent / "scenes" / "cornell_box.xml").read_text()
+    xml = tmp_path / "own.xml"
+    xml.write_text(text.replace("<scene version=\"3.0.0\">", """<scene version="3.0.0">
+    <integrator type="partpm">
+        <integer name="photon_count" value="3000"/>
+        <integer name="map_count" value="3"/>
+        <integer name="passes" value="2"/>
+    </integrator>""", 1))
+    assert "<integrator" in xml.read_text()
+    stats = tmp_path / "s.json"
+    argv = ["render", str(xml), "--resolution", "12x12", "-o", str(tmp_path / "o.exr"),
+            "--stats-json", str(stats)]
+    assert main(argv) == 0
+    figures = json.loads(stats.read_text())
+    assert (figures["photons_emitted"], figures["map_count"], figures["passes"]) == (3000, 3, 2)
+    assert figures["integrator"] == "PartPMIntegrator"
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        assert main([*argv, "--maps", "2"]) == 0
+    figures = json.loads(stats.read_text())
+    assert (figures["photons_emitted"], figures["map_count"], figures["passes"]) == \
+        (100_000, 2, 1)
+    assert "the command line's integrator (--maps) replaces the <integrator>" in caplog.text

@@ -47,6 +47,8 @@ from mi_partpm.trace import map_seeds, map_sizes
     ({"glossy_samples": 0}, r"glossy_samples must be an integer >= 1, got 0"),
     ({"final_gather": -2}, r"final_gather must be an integer >= 0, got -2"),
     ({"final_gather": 4}, r"final_gather = 4 needs direct = 'nee'"),
+    ({"caustic_radius": 0.1}, r"caustic_radius and caustic_radius_fraction .* need caustic "
+                              r"maps \(caustic_photon_count > 0\)"),
 ])
 def test_bad_props_raise_clear_errors(props, message):
     with pytest.raises(Exception, match=message):
@@ -88,7 +90,19 @@ def test_cli_render_writes_exr_and_png(tmp_path, capsys):
     (["render", "cornell_box", "-o", "x.png"], "must name an .exr"),
     (["render", "cornell_box", "--maps", "20", "--photons", "10", "-o", "x.exr"],
      r"map_count must be an integer in \[1, photon_count = 10\], got 20"),
-    (["render", "cornell_box", "--variant", "scalar_rgb", "-o", "x.exr"], "llvm_ad_rgb"),
+    (["render", "cornell_box", "--variant", "scalar_rgb", "-o", "x.exr"],
+     "--variant llvm_ad_rgb"),
+    # Options that would do nothing, and outputs that could not be written, are refused
+    # before any work.
+    (["render", "cornell_box", "--alpha", "0.5", "-o", "x.exr"], "--alpha .* needs a "
+                                                                 "progressive render"),
+    (["render", "cornell_box", "--caustic-radius", "0.01", "-o", "x.exr"],
+     r"need caustic maps \(--caustic-photons N\)"),
+    (["render", "cornell_box", "--passes", "3", "--checkpoint-every", "4", "-o", "x.exr"],
+     "would write no checkpoint in 3 passes"),
+    (["render", "cornell_box", "-o", "/proc/no_such_dir/x.exr"], "-o .* cannot be written"),
+    (["render", "cornell_box", "-o", "x.exr", "--stats-json", "/proc/x.json"],
+     "--stats-json .* cannot be written"),
 ])
 def test_cli_errors_are_one_line(argv, message, capsys):
     assert main(argv) == 2
@@ -98,6 +112,9 @@ def test_cli_errors_are_one_line(argv, message, capsys):
 
 
 @pytest.mark.parametrize("argv", [
+    ["render", "cornell_box", "--k", "1", "--integrator", "pm", "-o", "x.exr"],
+    ["render", "cornell_box", "--alpha", "1", "--passes", "2", "-o", "x.exr"],
+    ["compare", "cornell_box", "--k", "20000", "--out", "x"],
     ["render", "cornell_box", "--resolution", "4x", "-o", "x.exr"],
     ["render", "cornell_box", "--maps", "0", "-o", "x.exr"],
     ["render", "cornell_box", "--radius", "0", "-o", "x.exr"],

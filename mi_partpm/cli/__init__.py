@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import sys
 
-from .common import UsageError, parse_resolution
+from .common import UsageError, interrupted, parse_resolution
 from .experiments import (run_bench, run_calibrate, run_compare, run_converge, run_hwsim,
                           run_scaling, run_speedup)
 from .figures import run_figures
@@ -49,6 +49,8 @@ def main(argv=None) -> int:
     except UsageError as e:
         print(f"partpm: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except BaseException as e:      # Ctrl-C, also where Mitsuba wrapped it in its own error
+        if not interrupted(e):
+            raise
         print("partpm: interrupted", file=sys.stderr)
         return 130

@@ -2,12 +2,15 @@
 from __future__ import annotations
 
 import argparse
+import os
 import re
+from pathlib import Path
 
 from ..props import check_float, check_int
 
 __all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
-           "int_list", "setup", "progress", "last_line"]
+           "int_list", "setup", "progress", "last_line", "interrupted", "write_atomic",
+           "check_writable"]
 
 
 class UsageError(Exception):
@@ -48,9 +51,9 @@ def _integer(text: str) -> int:
     return value
 
 
-def positive_int(name):
-    """An argparse type for an integer >= 1, checked as the props are."""
-    return _argument_type(_integer, lambda v: check_int(name, v, low=1))
+def positive_int(name, low=1, high=None):
+    """An argparse type for an integer >= 1 (in [low, high]), checked as the props are."""
+    return _argument_type(_integer, lambda v: check_int(name, v, low=low, high=high))
 
 
 def seed_int(name="--seed"):
@@ -59,9 +62,11 @@ def seed_int(name="--seed"):
     return _argument_type(_integer, lambda v: check_int(name, v, low=0, high=2**32 - 1))
 
 
-def positive_float(name, high=None):
-    """An argparse type for a finite number > 0 (and <= ``high``), checked as the props are."""
-    return _argument_type(float, lambda v: check_float(name, v, low=0.0, high=high))
+def positive_float(name, high=None, high_open=False):
+    """An argparse type for a finite number > 0 (and <= ``high``, or < with ``high_open``),
+    checked as the props are."""
+    return _argument_type(float, lambda v: check_float(name, v, low=0.0, high=high,
+                                                       high_open=high_open))
 
 
 def int_list(option, text):
@@ -85,10 +90,14 @@ def setup(args, needs_plugins=True) -> bool:
                          f"{', '.join(mi.variants())}")
     if needs_plugins:
         try:
-            plugins.check_variant(args.variant)
+            plugins.check_variant(args.variant, hint="--variant llvm_ad_rgb")
         except ValueError as e:
             raise UsageError(str(e)) from None
-    mi.set_variant(args.variant)
+    try:
+        mi.set_variant(args.variant)
+    except (ImportError, RuntimeError) as e:   # e.g. a CUDA variant without a CUDA device
+        raise UsageError(f"--variant {args.variant!r} cannot run on this machine: "
+                         f"{last_line(e)}") from None
     import mi_partpm  # noqa: F401  (registers the plugins)
     from ..scenes import scene_names
 
@@ -114,3 +123,46 @@ def last_line(e: Exception) -> str:
     line = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
     # The exception's class name, which the traceback's last line starts with.
     return re.sub(r"^(?:\w+\.)*[A-Z]\w*(?:Error|Exception|Unavailable): ", "", line)
+
+
+def interrupted(e: BaseException) -> bool:
+    """Whether ``e`` is Ctrl-C: a KeyboardInterrupt, or an error that Mitsuba or Dr.Jit
+    raised because of one (``mi.render`` wraps what interrupts it in a RuntimeError)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
+def check_writable(path, option: str):
+    """Refuse an output file that cannot be written (its folder is a file, or is not
+    writable) before any work; its folder is made when missing."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.is_dir():
+            raise UsageError(f"{option} {str(path)!r} is a folder: give a file name")
+        probe = path.with_name(f".{path.name}.probe")
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise UsageError(f"{option} {str(path)!r} cannot be written: "
+                         f"{e.strerror or e}") from None
+
+
+def write_atomic(path, write):
+    """``write(temporary path)`` then rename it to ``path``: a reader of ``path`` (a
+    checkpoint read during the render) never sees a file half written. The temporary file
+    keeps the suffix, which tells Mitsuba the format."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.stem}.writing{path.suffix}")
+    try:
+        write(str(temporary))
+        os.replace(temporary, path)
+    finally:
+        if temporary.exists():
+            temporary.unlink()

@@ -111,10 +111,17 @@ def run_calibrate(args) -> int:
         except ValueError:
             raise UsageError(f"--radius-fractions must be comma-separated numbers in (0, 1], "
                              f"got {args.radius_fractions!r}") from None
+        leaves, maps = int_list("--leaf-sizes", args.leaf_sizes), int_list("--maps", args.maps)
+        from hwsim.calibrate import COST_NAMES
+        measured = len(leaves) * len(fracs) * sum(maps)
+        if measured < len(COST_NAMES) + 1:   # checked before any map is timed
+            raise UsageError(f"the fit of hwsim's {len(COST_NAMES)} costs needs at least "
+                             f"{len(COST_NAMES) + 1} measured maps per scene; --leaf-sizes x "
+                             f"--radius-fractions x the sum of --maps gives {len(leaves)} x "
+                             f"{len(fracs)} x {sum(maps)} = {measured}: give more of any")
         try:
             result = cal.run_calibrations(
-                args.scene, args.out, int_list("--leaf-sizes", args.leaf_sizes), fracs,
-                int_list("--maps", args.maps), int_list("--photons", args.photons),
+                args.scene, args.out, leaves, fracs, maps, int_list("--photons", args.photons),
                 args.resolution, args.spp, args.repeats, args.threads, args.seed, args.data,
                 args.check, progress=progress(args))
         except (FileNotFoundError, ValueError) as e:
@@ -130,13 +137,18 @@ def run_calibrate(args) -> int:
 
 
 def run_scaling(args) -> int:
+    import mitsuba as mi
     from ..experiments.scaling import format_scaling, run_scaling
+    if args.variant not in mi.variants():            # before any rank starts
+        raise UsageError(f"--variant {args.variant!r} is not a Mitsuba variant; available: "
+                         f"{', '.join(mi.variants())}")
     ranks = int_list("--ranks", args.ranks)
     extra = ["-f", args.hostfile] if args.hostfile else []
     try:
         rows = run_scaling(args.scene, ranks, args.maps, args.out, args.photons,
                            args.resolution, args.spp, args.repeats, args.data, extra,
-                           progress=progress(args), bench_repeats=args.bench_repeats)
+                           progress=progress(args), bench_repeats=args.bench_repeats,
+                           variant=args.variant)
     except (FileNotFoundError, ValueError, RuntimeError) as e:
         raise UsageError(str(e)) from None
     if not args.quiet:

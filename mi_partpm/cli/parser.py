@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..kdtree.knn import MAX_K
 from .common import parse_resolution, positive_float, positive_int, seed_int
 
 __all__ = ["build_parser"]
@@ -16,12 +17,15 @@ def _scene_options(p, maps_default=8):
                    help=f"number of partial photon maps n (default {maps_default})")
     p.add_argument("--photons", type=positive_int("--photons"), default=100_000,
                    help="photons emitted in total N (default 100000)")
-    p.add_argument("--k", type=positive_int("--k"),
-                   help="photons per kNN estimate of pm")
+    p.add_argument("--k", type=positive_int("--k", 2, MAX_K),
+                   help=f"photons per kNN estimate of pm, in [2, {MAX_K}] (default 50)")
     p.add_argument("--direct", choices=("photons", "nee"), default="photons",
                    help="direct light from the maps (paper) or by emitter sampling")
-    p.add_argument("--spp", type=positive_int("--spp"), help="samples per pixel")
-    p.add_argument("--resolution", type=parse_resolution, help="film size WxH, e.g. 480x480")
+    p.add_argument("--spp", type=positive_int("--spp"),
+                   help="samples per pixel (default: the scene's; 4 for compare)")
+    p.add_argument("--resolution", type=parse_resolution,
+                   help="film size WxH, e.g. 480x480 (default: the scene's, 480x480 for the "
+                        "built-in ones)")
     p.add_argument("--seed", type=seed_int(), default=0, help="seed of photons and eye samples")
     p.add_argument("--data", metavar="DIR",
                    help="directory of scene data such as happy_buddha_20k.ply "
@@ -58,7 +62,9 @@ def _render_options(sub):
     _scene_options(r)
     # Unset unless given, so that an option the chosen integrator ignores can be refused.
     r.set_defaults(photons=None, direct=None)
-    r.add_argument("--integrator", choices=("partpm", "pm", "path"), default="partpm")
+    r.add_argument("--integrator", choices=("partpm", "pm", "path"),
+                   help="the renderer (default partpm; a scene file's own <integrator> when no "
+                        "integrator option is given)")
     g = r.add_mutually_exclusive_group()
     g.add_argument("--radius", type=positive_float("--radius"),
                    help="search radius in world units (partpm)")
@@ -67,11 +73,12 @@ def _render_options(sub):
                         "0.025 with --passes > 1)")
     r.add_argument("--max-radius", type=positive_float("--max-radius"),
                    help="cap of the kNN radius (pm; default: none)")
-    r.add_argument("--max-depth", type=int, default=-1,
-                   help="longest light path in segments, as for Mitsuba's path (-1: unlimited)")
+    r.add_argument("--max-depth", type=int,
+                   help="longest light path in segments, as for Mitsuba's path (default -1: "
+                        "unlimited)")
     r.add_argument("--passes", type=positive_int("--passes"),
                    help="progressive passes of partpm (default 1: the paper's single pass)")
-    r.add_argument("--alpha", type=positive_float("--alpha", 1.0),
+    r.add_argument("--alpha", type=positive_float("--alpha", 1.0, high_open=True),
                    help="fraction of a pass's photons kept by the radius reduction, in (0, 1) "
                         "(default 0.7)")
     r.add_argument("--time", type=positive_float("--time"),
@@ -85,7 +92,8 @@ def _render_options(sub):
                         "(mpiexec -n P partpm render ... --backend mpi)")
     r.add_argument("--stats-json", metavar="FILE",
                    help="also write the run's figures (per rank with --backend mpi) as JSON")
-    r.add_argument("-o", "--output", help="output EXR file (a PNG is written beside it)")
+    r.add_argument("-o", "--output", help="output EXR file, required (a PNG is written beside "
+                                          "it)")
 
 
 def _quality_options(r):
@@ -143,9 +151,10 @@ def _experiment_options(sub):
     v.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
                    help="partpm's initial radius over the scene (default: partpm's, 0.025 for "
                         "a progressive render)")
-    v.add_argument("--alpha", type=positive_float("--alpha", 1.0), default=0.7,
+    v.add_argument("--alpha", type=positive_float("--alpha", 1.0, high_open=True), default=0.7,
                    help="partpm's alpha (default 0.7)")
-    v.add_argument("--k", type=positive_int("--k"), default=50, help="pm's k (default 50)")
+    v.add_argument("--k", type=positive_int("--k", 2, MAX_K), default=50,
+                   help="pm's k (default 50)")
     v.add_argument("--reference-spp", type=positive_int("--reference-spp"), default=8192,
                    help="samples per pixel of the path-traced reference (default 8192)")
     v.add_argument("--methods", default="partpm,pm,path",
@@ -240,6 +249,8 @@ def _experiment_options(sub):
     _size_options(m, spp=4, repeats=3, repeats_help="runs per P")
     m.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
     m.add_argument("--hostfile", help="MPI hostfile, passed to mpiexec -f (clusters)")
+    m.add_argument("--variant", default="llvm_ad_rgb",
+                   help="Mitsuba variant of every rank (llvm_ad_rgb)")
     m.add_argument("--bench-repeats", type=positive_int("--bench-repeats"), default=15,
                    help="timed reductions per message size in the micro-benchmark that fits "
                         "the alpha-beta model (default 15)")

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
+import xml.etree.ElementTree as ElementTree
 from pathlib import Path
 
-from .common import UsageError, last_line, setup
+from .common import UsageError, check_writable, interrupted, last_line, setup, write_atomic
 
 __all__ = ["run_render", "integrator_desc", "format_ranks"]
 
@@ -17,9 +19,12 @@ log = logging.getLogger("mi_partpm")
 
 
 def integrator_desc(args) -> dict:
-    """The ``mi.load_dict`` description of the integrator the options ask for."""
+    """The ``mi.load_dict`` description of the integrator the options ask for (partpm
+    unless ``--integrator`` names another)."""
+    args.integrator = args.integrator or "partpm"
+    max_depth = -1 if args.max_depth is None else args.max_depth
     if args.integrator == "path":
-        desc = {"type": "path", "max_depth": args.max_depth}
+        desc = {"type": "path", "max_depth": max_depth}
         photon_options = [o for o, v in (
             ("--photons", args.photons), ("--maps", args.maps), ("--direct", args.direct),
             ("--radius", args.radius), ("--radius-fraction", args.radius_fraction),
@@ -29,7 +34,7 @@ def integrator_desc(args) -> dict:
                              f"(--integrator partpm or pm), not to path")
     else:
         desc = {"type": args.integrator, "photon_count": args.photons or 100_000,
-                "seed": args.seed, "max_depth": args.max_depth,
+                "seed": args.seed, "max_depth": max_depth,
                 "direct": args.direct or "photons"}
     progressive = [o for o, v in (("--passes", args.passes), ("--alpha", args.alpha),
                                   ("--time", args.time),
@@ -37,6 +42,13 @@ def integrator_desc(args) -> dict:
     if progressive and args.integrator != "partpm":
         raise UsageError(f"{', '.join(progressive)} apply to --integrator partpm only (the "
                          f"progressive photon mapper)")
+    if args.alpha is not None and not args.time and (args.passes or 1) == 1:
+        raise UsageError("--alpha sets how fast the radius shrinks between passes: it needs a "
+                         "progressive render (--passes P > 1, or --time SECONDS)")
+    if args.checkpoint_every and args.passes and not args.time and \
+            args.checkpoint_every > args.passes:
+        raise UsageError(f"--checkpoint-every {args.checkpoint_every} would write no "
+                         f"checkpoint in {args.passes} passes: give K <= --passes")
     if args.checkpoint_every and not args.time and (args.passes or 1) == 1:
         raise UsageError("--checkpoint-every writes the image between passes: it needs a "
                          "progressive render (--passes P > 1, or --time SECONDS)")
@@ -54,6 +66,9 @@ def integrator_desc(args) -> dict:
                                   ("--final-gather", args.final_gather)) if v]
     if partpm_only and args.integrator != "partpm":
         raise UsageError(f"{', '.join(partpm_only)} apply to --integrator partpm only")
+    if (args.caustic_radius or args.caustic_radius_fraction) and not args.caustic_photons:
+        raise UsageError("--caustic-radius and --caustic-radius-fraction are the caustic "
+                         "maps' radius: they need caustic maps (--caustic-photons N)")
     if args.integrator == "pm":
         unused = [o for o, v in (("--maps", args.maps), ("--radius", args.radius),
                                  ("--radius-fraction", args.radius_fraction)) if v]
@@ -89,12 +104,47 @@ def integrator_desc(args) -> dict:
     return desc
 
 
+#: The render options that describe the integrator (``--checkpoint-every`` and ``--seed``
+#: apply to a scene file's own integrator too). Given none, a scene file's ``<integrator>``
+#: renders; given any, the command line's integrator replaces it.
+INTEGRATOR_OPTIONS = ("integrator", "photons", "maps", "direct", "radius", "radius_fraction",
+                      "max_radius", "k", "max_depth", "passes", "alpha", "time", "kernel",
+                      "caustic_photons", "caustic_radius", "caustic_radius_fraction", "glossy",
+                      "glossy_samples", "final_gather")
+
+
+def _given_options(args) -> list:
+    """The integrator options given on the command line, as the user typed them."""
+    given = [f"--{o.replace('_', '-')}" for o in INTEGRATOR_OPTIONS
+             if getattr(args, o, None) is not None]
+    return given + (["--backend"] if args.backend != "local" else [])
+
+
+def scene_file_integrator(scene: str) -> bool:
+    """Whether ``scene`` is a scene file with an ``<integrator>`` of its own (at the top
+    level: Mitsuba's default when it has none is ``path``, which cannot be told apart)."""
+    from ..scenes import scene_path
+    try:
+        path = scene_path(scene)
+        if path.parent == Path(__file__).resolve().parent.parent / "scenes":
+            return False                      # the built-in scenes leave the integrator to us
+        root = ElementTree.parse(path).getroot()
+    except (OSError, ValueError, ElementTree.ParseError):
+        return False
+    return any(child.tag == "integrator" for child in root)
+
+
 def _output_path(args) -> Path:
     if not args.output:
         raise UsageError("render needs -o OUT.exr")
     out = Path(args.output)
     if out.suffix.lower() != ".exr":
         raise UsageError(f"-o must name an .exr file, got {args.output!r}")
+    # Before any work: an output that cannot be written would lose the whole render.
+    check_writable(out, "-o")
+    check_writable(out.with_suffix(".png"), "-o (its PNG)")
+    if args.stats_json:
+        check_writable(args.stats_json, "--stats-json")
     return out
 
 
@@ -107,10 +157,17 @@ def run_render(args) -> int:
     if not setup(args, needs_plugins=args.integrator != "path"):
         return 0
     out = _output_path(args)
-    try:
-        integrator = mi.load_dict(integrator_desc(args))
-    except (ValueError, RuntimeError) as e:
-        raise UsageError(last_line(e)) from None
+    given = _given_options(args)
+    from_file = args.scene is not None and scene_file_integrator(args.scene)
+    if from_file and given:
+        log.warning("the command line's integrator (%s) replaces the <integrator> of %s",
+                    ", ".join(given), args.scene)
+    integrator = None
+    if not from_file or given:
+        try:
+            integrator = mi.load_dict(integrator_desc(args))
+        except (ValueError, RuntimeError) as e:
+            raise UsageError(last_line(e)) from None
     clock = Stopwatch()
     try:
         scene = mi_partpm.load_scene(args.scene, resolution=args.resolution, spp=args.spp,
@@ -118,14 +175,26 @@ def run_render(args) -> int:
         check_scene(scene, args.scene)
     except (FileNotFoundError, ValueError) as e:
         raise UsageError(str(e)) from None
+    if integrator is None:              # the scene file's own, as Mitsuba would render it
+        integrator = scene.integrator()
+        # A Python plugin's class_name() is its base class's ("SamplingIntegrator").
+        args.integrator = type(integrator).__name__ if not type(integrator).__module__ \
+            .startswith("mitsuba") else integrator.class_name()
+        if args.checkpoint_every and not hasattr(integrator, "on_pass"):
+            raise UsageError(f"--checkpoint-every needs a progressive partpm; the scene "
+                             f"file's integrator is {args.integrator}")
     film = scene.sensors()[0].film()
-    log.info("scene %s: %dx%d, %s", args.scene, film.size()[0], film.size()[1], integrator)
+    log.info("scene %s: %dx%d, %s%s", args.scene, film.size()[0], film.size()[1], integrator,
+             " (the scene file's integrator)" if integrator is scene.integrator() else "")
     seconds = {"load": clock.lap()}
     if args.checkpoint_every:
         integrator.on_pass = _checkpoints(args.checkpoint_every, out, integrator)
     try:
-        image = mi.render(scene, integrator=integrator, seed=args.seed)
+        with _stop_on_interrupt(integrator):
+            image = mi.render(scene, integrator=integrator, seed=args.seed)
     except (ValueError, RuntimeError, MemoryError) as e:
+        if interrupted(e):
+            raise KeyboardInterrupt from None
         raise UsageError(last_line(e)) from None
     seconds["render"] = clock.lap(image)
     stats = getattr(integrator, "stats", {})
@@ -138,36 +207,66 @@ def run_render(args) -> int:
     return 0
 
 
+class _stop_on_interrupt:
+    """During a progressive render, the first Ctrl-C asks the integrator to stop after the
+    pass it is in (the image of the passes so far is then written as usual); a second one
+    interrupts at once. Other renders keep Python's Ctrl-C."""
+
+    def __init__(self, integrator):
+        self.integrator = integrator
+        self.asked = False
+        self.active = getattr(integrator, "passes", 1) > 1 and \
+            hasattr(integrator, "stop_requested")
+
+    def _handler(self, signum, frame):
+        if self.asked:
+            raise KeyboardInterrupt
+        self.asked = True
+        log.warning("Ctrl-C: stopping after this pass and writing the image of the passes "
+                    "so far (Ctrl-C again to stop at once, with no image)")
+
+    def __enter__(self):
+        if self.active:
+            self.previous = signal.signal(signal.SIGINT, self._handler)
+            self.integrator.stop_requested = lambda: self.asked
+        return self
+
+    def __exit__(self, *exc):
+        if self.active:
+            signal.signal(signal.SIGINT, self.previous)
+            self.integrator.stop_requested = None
+        return False
+
+
 def _checkpoints(every: int, out: Path, integrator):
     """An ``on_pass`` that writes the image so far to ``out`` every ``every`` passes."""
-    import mitsuba as mi
-
     def on_pass(info):
         backend = getattr(integrator, "backend", None)
         if info["pass"] % every or (backend is not None and not backend.is_root):
             return
-        out.parent.mkdir(parents=True, exist_ok=True)
-        image = info["image"]()
-        mi.Bitmap(image).write(str(out))
-        mi.util.write_bitmap(str(out.with_suffix(".png")), image, write_async=False)
+        _write_image(out, info["image"]())
         log.info("checkpoint: pass %d written to %s", info["pass"], out)
     return on_pass
 
 
 def _write(args, out: Path, image, stats: dict, seconds: dict, resolution):
-    import mitsuba as mi
-
     from ..experiments.provenance import code_version
     if args.stats_json:
-        Path(args.stats_json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.stats_json).write_text(json.dumps(
+        write_atomic(args.stats_json, lambda name: Path(name).write_text(json.dumps(
             {"time_load": seconds["load"], "time_render": seconds["render"],
              "scene": args.scene, "integrator": args.integrator, "backend": args.backend,
              "resolution": resolution, "code": code_version(), **stats}, indent=2,
-            default=str) + "\n")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    mi.Bitmap(image).write(str(out))
-    mi.util.write_bitmap(str(out.with_suffix(".png")), image, write_async=False)
+            default=str) + "\n"))
+    _write_image(out, image)
+
+
+def _write_image(out: Path, image):
+    """The EXR and the PNG beside it, each written whole or not at all (see
+    :func:`~.common.write_atomic`): a checkpoint may be read while the render goes on."""
+    import mitsuba as mi
+    write_atomic(out, lambda name: mi.Bitmap(image).write(name))
+    write_atomic(out.with_suffix(".png"),
+                 lambda name: mi.util.write_bitmap(name, image, write_async=False))
 
 
 def _summary(stats: dict, seconds: dict, out: Path) -> str:
@@ -183,10 +282,13 @@ def _summary(stats: dict, seconds: dict, out: Path) -> str:
             search = f"k = {stats['k']}, mean kNN radius {stats['mean_knn_radius']:.4g}"
         else:
             search = f"radius {stats['radius']:.4g}"
+            if stats.get("passes", 1) > 1 and "mean_final_radius" in stats:
+                search += f" at the start, {stats['mean_final_radius']:.4g} (mean) at the end"
         passes = stats.get("passes", 1)
         per_pass = f" per pass, {passes} passes" if passes > 1 else ""
         lines.append(f"photons  {stats['photons_emitted']} emitted{per_pass}, "
-                     f"{stats['photons_stored']} stored in {stats['map_count']} maps, {search}")
+                     f"{stats['photons_stored']} stored in {stats['map_count']} "
+                     f"map{'' if stats['map_count'] == 1 else 's'}, {search}")
     if stats.get("ranks"):
         lines.append(format_ranks(stats["ranks"]))
     lines.append(f"wrote    {out} and {out.with_suffix('.png')}")

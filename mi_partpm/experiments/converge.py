@@ -183,7 +183,15 @@ def _path(s: ConvergeSettings, ref, say) -> list:
                                              seed=s.seed + chunk))
             total, seconds = total + _image(img) * n, seconds + t
         return total / spp, seconds
-    return _doubling("path", s, ref, say, render, 1, "spp")
+    rows = _doubling("path", s, ref, say, render, 1, "spp")
+    most = int(rows[-1]["setting"].split()[0]) if rows else 0
+    if 4 * most > s.reference_spp:
+        # The error of path at n spp against a reference of R spp is its own noise plus the
+        # reference's, which is n / R of it: over a quarter, the curve measures the reference.
+        log.warning("path reached %d spp, over a quarter of the reference's %d: its last "
+                    "points measure the reference's own noise too; raise --reference-spp "
+                    "(or lower --time)", most, s.reference_spp)
+    return rows
 
 
 def _pm(s: ConvergeSettings, ref, say) -> list:

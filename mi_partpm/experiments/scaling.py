@@ -40,7 +40,8 @@ def _median(values):
 def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: int = 100_000,
                 resolution=(480, 480), spp: int = 4, repeats: int = 3,
                 data_dir: Optional[str] = None, mpiexec_args: Sequence[str] = (),
-                progress=print, timeout: float = 3600, bench_repeats: int = 15) -> list:
+                progress=print, timeout: float = 3600, bench_repeats: int = 15,
+                variant: str = "llvm_ad_rgb") -> list:
     """Render ``scene`` on each P in ``ranks`` ``repeats`` times; return one row per P.
 
     Each row holds the medians over the repeats of: the render time (trace, build, estimate
@@ -64,7 +65,8 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
             cmd = [mpiexec, *mpiexec_args, "-n", str(p), sys.executable, "-m", "mi_partpm.cli",
                    "render", scene, "--backend", "mpi", "--maps", str(maps), "--photons",
                    str(photons), "--resolution", f"{resolution[0]}x{resolution[1]}", "--spp",
-                   str(spp), "-q", "-o", f"{stem}.exr", "--stats-json", f"{stem}.json"]
+                   str(spp), "--variant", variant, "-q", "-o", f"{stem}.exr", "--stats-json",
+                   f"{stem}.json"]
             if data_dir:
                 cmd += ["--data", str(data_dir)]
             say(f"P = {p}, run {rep + 1}/{repeats}: mpiexec -n {p} partpm render {scene} ...")

@@ -100,8 +100,8 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
                       "(--resolution)", "spp": "the sample count (--spp)"}.get(name, name)
             raise ValueError(
                 f"scene file {str(path)!r} does not take ${name}, so {option} cannot be set: "
-                f"use value=\"${name}\" in it (with <default name=\"{name}\" .../>) or leave "
-                f"the option out")
+                f"use value=\"${name}\" in it (with <default name=\"{name}\" .../>), or with "
+                f"'partpm render' leave the option out (the experiment commands always set it)")
     try:
         return mi.load_file(str(path), **{k: str(v) for k, v in params.items()})
     except RuntimeError as e:
