@@ -441,9 +441,10 @@ class PhotonMapper(mi.SamplingIntegrator):
         timed_out = self.time_limit > 0 and elapsed >= self.time_limit
         asked = self.stop_requested is not None and bool(self.stop_requested())
         stop = (timed_out or asked) and done < self.passes
-        if self.time_limit > 0 or self.stop_requested is not None:
+        if self.passes > 1:
             # Every process of the render stops after the same pass (the root's clock and
             # request say which), or one would wait in the next pass's gather for ever.
+            # Asked after every pass, so a request made on one process alone is honoured too.
             stop = self.backend.agree(stop)
         info["last"] = stop or done == self.passes
         if self.passes > 1:
