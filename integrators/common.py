@@ -278,6 +278,23 @@ class PhotonMapper(mi.SamplingIntegrator):
         their visible points and gather; then develop the film. With ``backend="mpi"`` rank 0
         returns the image (its ``stats["ranks"]`` lists every rank's figures); the other
         ranks return an image without emission and direct light."""
+        with dr.suspend_grad():       # not differentiable (see render_backward)
+            return self._render(scene, sensor, seed, spp, develop, evaluate)
+
+    def _not_differentiable(self):
+        raise NotImplementedError(
+            f"{type(self).__name__} is not differentiable: photon tracing, the kd-trees and "
+            f"the density estimate have no derivatives; use Mitsuba's prb (or another "
+            f"differentiable integrator) for gradients, and {type(self).__name__} for the "
+            f"image")
+
+    def render_forward(self, *args, **kwargs):
+        self._not_differentiable()
+
+    def render_backward(self, *args, **kwargs):
+        self._not_differentiable()
+
+    def _render(self, scene, sensor, seed, spp, develop, evaluate):
         if not develop and self.backend.name != "local":
             raise ValueError(f"develop=False is not supported with backend={self.backend.name!r}"
                              f": render with develop=True")

@@ -71,6 +71,11 @@ class CameraPass:
             time += sampler.next_1d() * sensor.shutter_open_time()
         wavelength = sampler.next_1d() if mi.is_spectral else mi.Float(0.0)
         ray, weight = sensor.sample_ray_differential(time, wavelength, adjusted, aperture)
+        if dr.width(ray.o) < self.width:
+            # A sensor whose ray is the same for every sample (a radiancemeter): one ray per
+            # sample all the same, or the eye pass would follow one path for all of them.
+            zero = dr.zeros(mi.Float, self.width)
+            ray.o, ray.d, ray.time = ray.o + zero, ray.d + zero, ray.time + zero
         if ray.has_differentials:
             ray.scale_differential(self.diff_scale)
         return ray, weight

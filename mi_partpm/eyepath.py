@@ -279,7 +279,9 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     while depth < limit:
         si = scene.ray_intersect(ray, active)
         if depth == 0:
-            valid = active & si.is_valid()
+            # As Mitsuba's path: a ray that sees a visible environment is valid too (alpha 1).
+            valid = active & (si.is_valid() | (not hide_emitters and
+                                               scene.environment() is not None))
         # Emission seen by the camera, directly or through delta (or sampled glossy) bounces.
         emitter = si.emitter(scene, active)
         show = active & (emitter != None)   # noqa: E711
