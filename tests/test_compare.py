@@ -192,7 +192,7 @@ def test_pm_from_xml_and_cli(tmp_path, capsys):
     assert "mean kNN radius" in capsys.readouterr().out
     assert main(["render", "cornell_box", "--integrator", "pm", "--maps", "4",
                  "-o", str(out)]) == 2
-    assert "--maps do(es) not apply to --integrator pm" in capsys.readouterr().err
+    assert "--maps does not apply to --integrator pm" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------- the Happy Buddha scene

@@ -188,7 +188,7 @@ def test_cli_progressive_render_with_checkpoints(tmp_path, capsys, caplog):
     assert out.is_file() and "4 passes" in capsys.readouterr().out
     assert main(["render", "cornell_box", "--integrator", "pm", "--passes", "2", "-o",
                  str(out)]) == 2
-    assert "--passes apply to --integrator partpm only" in capsys.readouterr().err
+    assert "--passes applies to --integrator partpm only" in capsys.readouterr().err
     # Checkpoints are written between passes: a single pass has none to write.
     assert main(["render", "cornell_box", "--checkpoint-every", "2", "-o", str(out)]) == 2
     assert "--checkpoint-every writes the image between passes" in capsys.readouterr().err

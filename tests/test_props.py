@@ -159,14 +159,14 @@ def test_cli_quality_options_reach_the_integrator(tmp_path):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--integrator", "pm", "--final-gather", "4"], "--final-gather apply to --integrator "
+    (["--integrator", "pm", "--final-gather", "4"], "--final-gather applies to --integrator "
                                                     "partpm only"),
     (["--integrator", "path", "--kernel", "cone"], "--kernel, --glossy and --glossy-samples "
                                                    "apply to the photon mappers"),
     (["--integrator", "path", "--photons", "5", "--maps", "3", "--direct", "nee", "--radius",
       "0.1"], "--photons, --maps, --direct, --radius apply to the photon mappers "
               "(--integrator partpm or pm), not to path"),
-    (["--integrator", "path", "--k", "5"], "--k apply to the photon mappers"),
+    (["--integrator", "path", "--k", "5"], "--k applies to the photon mappers"),
 ])
 def test_cli_quality_options_name_the_integrators_they_apply_to(argv, message, capsys):
     assert main(["render", "cornell_box", *argv, "-o", "x.exr"]) == 2

@@ -18,6 +18,13 @@ __all__ = ["run_render", "integrator_desc", "format_ranks"]
 log = logging.getLogger("mi_partpm")
 
 
+def _options(names, negation="") -> str:
+    """'--a applies' or '--a, --b apply' ('does not apply' with ``negation``)."""
+    verb = ("does not apply " if len(names) == 1 else "do not apply ") if negation else \
+        ("applies" if len(names) == 1 else "apply")
+    return f"{', '.join(names)} {verb}"
+
+
 def integrator_desc(args) -> dict:
     """The ``mi.load_dict`` description of the integrator the options ask for (partpm
     unless ``--integrator`` names another)."""
@@ -30,7 +37,7 @@ def integrator_desc(args) -> dict:
             ("--radius", args.radius), ("--radius-fraction", args.radius_fraction),
             ("--k", args.k), ("--max-radius", args.max_radius)) if v is not None]
         if photon_options:
-            raise UsageError(f"{', '.join(photon_options)} apply to the photon mappers "
+            raise UsageError(f"{_options(photon_options)} to the photon mappers "
                              f"(--integrator partpm or pm), not to path")
     else:
         desc = {"type": args.integrator, "photon_count": args.photons or 100_000,
@@ -40,7 +47,7 @@ def integrator_desc(args) -> dict:
                                   ("--time", args.time),
                                   ("--checkpoint-every", args.checkpoint_every)) if v]
     if progressive and args.integrator != "partpm":
-        raise UsageError(f"{', '.join(progressive)} apply to --integrator partpm only (the "
+        raise UsageError(f"{_options(progressive)} to --integrator partpm only (the "
                          f"progressive photon mapper)")
     if args.alpha is not None and not args.time and (args.passes or 1) == 1:
         raise UsageError("--alpha sets how fast the radius shrinks between passes: it needs a "
@@ -65,7 +72,7 @@ def integrator_desc(args) -> dict:
                                   ("--caustic-radius-fraction", args.caustic_radius_fraction),
                                   ("--final-gather", args.final_gather)) if v]
     if partpm_only and args.integrator != "partpm":
-        raise UsageError(f"{', '.join(partpm_only)} apply to --integrator partpm only")
+        raise UsageError(f"{_options(partpm_only)} to --integrator partpm only")
     if (args.caustic_radius or args.caustic_radius_fraction) and not args.caustic_photons:
         raise UsageError("--caustic-radius and --caustic-radius-fraction are the caustic "
                          "maps' radius: they need caustic maps (--caustic-photons N)")
@@ -73,7 +80,7 @@ def integrator_desc(args) -> dict:
         unused = [o for o, v in (("--maps", args.maps), ("--radius", args.radius),
                                  ("--radius-fraction", args.radius_fraction)) if v]
         if unused:
-            raise UsageError(f"{', '.join(unused)} do(es) not apply to --integrator pm "
+            raise UsageError(f"{_options(unused, 'not ')}to --integrator pm "
                              f"(one map, k nearest photons: use --k, --max-radius)")
         if args.k is not None:
             desc["k"] = args.k
