@@ -36,6 +36,7 @@ import numpy as np
 from mi_partpm import memory
 from mi_partpm.backends import LocalBackend
 from mi_partpm.camera import CameraPass
+from mi_partpm.estimate import note_bent_bsdfs
 from mi_partpm.eyepath import eye_paths
 from mi_partpm.photonmap import build_photon_maps
 from mi_partpm.props import UNLIMITED_DEPTH, read_bool, read_photon_map_params
@@ -300,6 +301,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                              f": render with develop=True")
         with self.backend.running():
             check_emitters(scene)            # before any work: a scene it cannot render
+            note_bent_bsdfs(scene)
             seed = _as_int(seed)
             self.radius = self.search_radius(scene)
             self._start_stats(seed)
@@ -371,6 +373,11 @@ class PhotonMapper(mi.SamplingIntegrator):
                             "emitted light will show" if depth < 1 else
                             "leaves photons only direct light, which direct = 'nee' samples "
                             "instead; the maps add nothing")
+            elif self.min_bounce() > 1:
+                log.warning("no photon was stored: direct = '%s' stores only light that "
+                            "bounced at least once, and none reached a surface with a "
+                            "non-delta BSDF (direct light comes from emitter sampling)",
+                            self.params.direct)
             else:
                 log.warning("no photon was stored: the scene has no surface with a non-delta "
                             "BSDF lit by its emitters; only emitted light will show")
@@ -499,6 +506,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                              f"must be the scene's top-level integrator (its ranks gather "
                              f"whole images); use backend='local' inside moment or aov")
         check_emitters(scene)
+        note_bent_bsdfs(scene)
         width = dr.width(ray.o)
         self.radius = self.search_radius(scene)
         self._start_stats(0)

@@ -73,12 +73,14 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
 def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool,
                   glossy: bool = False, chain: int = 8):
     """Follow delta lobes (and with ``glossy`` glossy ones) from ``ray`` to the first surface
-    with a non-delta lobe (with ``glossy``: a diffuse lobe), at most ``chain`` bounces: (hit,
+    with a non-delta lobe (with ``glossy``: a diffuse lobe) where the ray stops (at one with
+    delta lobes too, half the rays go on through those), at most ``chain`` bounces: (hit,
     its BSDF, reached, throughput, emission seen after one bounce or more when
     ``caustics``)."""
     seen = dr.zeros(mi.Spectrum, dr.width(beta))
     ctx_through = lobe_context(mi.BSDFFlags.Delta | mi.BSDFFlags.Glossy if glossy
                                else mi.BSDFFlags.Delta)
+    ctx_delta = lobe_context(mi.BSDFFlags.Delta)
     hit = dr.zeros(mi.SurfaceInteraction3f, dr.width(beta))
     reached = dr.zeros(mi.Bool, dr.width(beta))
     for step in range(min(chain, max(limit - 1, 1))):
@@ -90,12 +92,23 @@ def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool,
         active &= si.is_valid()
         bsdf = si.bsdf(ray)
         flags = bsdf.flags()
-        stop = active & lands_on(flags, glossy)
+        lands = active & lands_on(flags, glossy)
+        # A surface read from the map that has delta lobes as well (a mask's or a null
+        # BSDF's pass-through, plastic's coat, a blend with glass): the map there holds only
+        # its other lobes, so the ray either stops there or goes on through the delta
+        # lobes, each with probability 1/2 and weight 2.
+        both = lands & mi.has_flag(flags, mi.BSDFFlags.Delta)
+        on = both & (rng.next_float32() < 0.5)
+        stop = lands & ~on
+        beta = dr.select(both, beta * 2.0, beta)
         hit = dr.select(stop, si, hit)
         reached |= stop
-        active &= ~stop & passes_through(flags, glossy)
-        bs, weight = bsdf.sample(ctx_through, si, rng.next_float32(),
-                                 mi.Point2f(rng.next_float32(), rng.next_float32()), active)
+        active &= (~lands & passes_through(flags, glossy)) | on
+        u1, u2 = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
+        bs, weight = bsdf.sample(ctx_through, si, u1, u2, active & ~on)
+        bs_on, weight_on = bsdf.sample(ctx_delta, si, u1, u2, on)
+        bs = dr.select(on, bs_on, bs)
+        weight = dr.select(on, weight_on, weight)
         beta = dr.select(active, beta * weight, beta)
         active &= dr.any(weight != 0)
         ray = si.spawn_ray(si.to_world(bs.wo))

@@ -165,10 +165,12 @@ def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE,
 
 
 def fixed_radius(scene: mi.Scene, radius, radius_fraction: float) -> float:
-    """The fixed radius: ``radius`` if given, else a fraction of the bounding box's longest side."""
+    """The fixed radius: ``radius`` if given, else a fraction of the longest side of the
+    shapes' bounding box (:func:`~mi_partpm.scenes.scene_bounds`)."""
+    from .scenes import scene_bounds
     if radius is not None:
         return float(radius)
-    extent = scene.bbox().extents()
+    extent = scene_bounds(scene).extents()
     longest = float(dr.max(mi.ScalarVector3f(extent)))
     if not longest > 0:
         raise ValueError("the scene's bounding box is empty: give radius explicitly")

@@ -532,7 +532,6 @@ def _trace_paths(run, map_id, photon_index, out, runs, capacity, width, counts=N
         store = smooth & (bounce >= store_from)
         if dr.hint(paths == 1, mode="scalar"):
             store &= caustic
-            active &= ~lands                            # no caustic photon after this one
         elif dr.hint(paths == 2, mode="scalar"):
             store &= ~caustic
         # A stored photon takes the next slot of its lane's run of slots; a lane whose run is
@@ -559,8 +558,14 @@ def _trace_paths(run, map_id, photon_index, out, runs, capacity, width, counts=N
         power *= bsdf_weight
         # The lobes a caustic path may bounce on before the surface it is stored on; the path
         # is no caustic one after that surface, whichever of its lobes it left by (a plastic's
-        # coat), since its caustic photon was stored there.
-        delta_only &= passes_through(bs.sampled_type, through_glossy) & ~lands
+        # coat), since its caustic photon was stored there; but for a pass straight through
+        # (a mask's or a null BSDF's null lobe), which is no bounce: the light behind a mask
+        # is then a caustic, L S+ D, where final gathering reads it (it cannot see the light
+        # through the mask, as emitter sampling cannot).
+        passed = lands & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
+        delta_only &= passes_through(bs.sampled_type, through_glossy) & (~lands | passed)
+        if dr.hint(paths == 1, mode="scalar"):
+            active &= ~lands | passed                   # no caustic photon after this one
         active &= dr.any(power != 0) & dr.all(dr.isfinite(power))
         if bounce >= rr_from:
             q = dr.minimum(dr.max(bsdf_weight), 0.95)

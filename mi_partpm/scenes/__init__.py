@@ -17,14 +17,16 @@ filled in from the package's data (or ``data_dir`` / ``$PARTPM_DATA``) unless gi
 """
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Optional, Tuple
 
+import drjit as dr
 import mitsuba as mi
 
 from ..data import find_data_file
 
-__all__ = ["scene_names", "scene_path", "load_scene", "check_scene"]
+__all__ = ["scene_names", "scene_path", "load_scene", "check_scene", "scene_bounds"]
 
 _HERE = Path(__file__).resolve().parent
 
@@ -108,10 +110,65 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
         raise ValueError(f"could not load scene {str(path)!r}: {e}") from None
 
 
+log = logging.getLogger("mi_partpm")
+
+
+def scene_bounds(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
+    """The bounding box of the scene's shapes. Mitsuba 3.9 merges the meshes of shapes that
+    share a BSDF (``<ref id=.../>``) into one mesh and leaves that mesh's box, and so the
+    scene's, invalid or without it; such a mesh's box is computed here from its vertices."""
+    box = mi.ScalarBoundingBox3f()
+    for shape in scene.shapes():
+        if not shape.bbox().valid() and isinstance(shape, mi.Mesh) and shape.vertex_count():
+            shape.recompute_bbox()
+        box.expand(shape.bbox())
+    return box
+
+
+def _contains(outer, inner) -> bool:
+    return outer.valid() and all(outer.min[a] <= inner.min[a] and inner.max[a] <= outer.max[a]
+                                 for a in range(3))
+
+
+def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
+    """Where Mitsuba's box of the scene misses shapes (:func:`scene_bounds`), the emitters at
+    infinity (environment, directional, sun) would emit their photons from the wrong sphere
+    (from a point, for an invalid box): they are pointed at the sphere around the shapes'
+    true box, once, with a warning."""
+    if not scene.shapes():
+        return
+    true_box = scene_bounds(scene)
+    if not true_box.valid() or _contains(scene.bbox(), true_box):
+        return
+    infinite = [e for e in scene.emitters()
+                if mi.has_flag(e.flags(), mi.EmitterFlags.Infinite)]
+    key = (id(scene), str(true_box))
+    if key in _REPAIRED:
+        return
+    _REPAIRED.add(key)
+    what = "the scene" if name is None else f"scene {name!r}"
+    log.warning("Mitsuba's bounding box of %s leaves out shapes (it merged shapes that share "
+                "a BSDF into a mesh without a box): photon mapping uses the box of their "
+                "vertices, %s to %s%s", what, list(true_box.min), list(true_box.max),
+                ", also for the emitters at infinity" if infinite else "")
+    if infinite:
+        centre, half = true_box.center(), true_box.extents() * 0.5
+        stand_in = mi.load_dict({"type": "scene", "box": {
+            "type": "cube", "to_world": mi.ScalarTransform4f().translate(centre).scale(
+                dr.maximum(half, 1e-6))}})
+        for emitter in infinite:
+            emitter.set_scene(stand_in)
+
+
+#: (scene, box) pairs whose emitters at infinity were pointed at the shapes' box already.
+_REPAIRED = set()
+
+
 def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool = True):
     """Refuse a scene photon mapping cannot render: no emitter (nothing would be lit) or,
     when ``needs_sensor``, no sensor. The one check every entry point makes."""
     what = "the scene" if name is None else f"scene {name!r}"
+    _repair_infinite_emitters(scene, name)
     if not scene.emitters():
         raise ValueError(f"{what} has no emitter: nothing would be lit (photon mapping needs "
                          f"at least one light)")
