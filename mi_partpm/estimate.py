@@ -69,6 +69,9 @@ def is_plain_diffuse(flags, bsdf=None):
     return plain
 
 
+#: The class of Mitsuba's ``diffuse`` plugin, albedo / pi by construction.
+LAMBERTIAN_CLASS = "SmoothDiffuse"
+
 #: BSDFs whose flags say diffuse reflection only but which are not Lambertian about the
 #: shading frame Mitsuba hands them (``normalmap`` and ``bumpmap`` bend the normal inside):
 #: per BSDF registry id (process-wide), True where bent; and the device table of them.
@@ -89,7 +92,10 @@ def note_bent_bsdfs(scene: mi.Scene, samples: int = 16):
             continue
         key = int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
         if key not in ids:
-            ids[key] = not _lambertian(scene, shape, bsdf, samples)
+            # Mitsuba's own diffuse BSDF is Lambertian: only other plugins with its flags
+            # (wrappers such as normalmap, bumpmap, twosided, blendbsdf) are tested.
+            ids[key] = bsdf.class_name() != LAMBERTIAN_CLASS and \
+                not _lambertian(scene, shape, bsdf, samples)
             changed = True
     if changed:
         table = np.zeros(max(ids) + 1, dtype=np.uint32)
