@@ -171,6 +171,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                                 self._photon_depth(), p.rr_depth, maps=maps,
                                 min_bounce=self.min_bounce(), paths=layer.paths,
                                 caustic_through=self.caustic_through(),
+                                caustic_past_landings=self.caustic_past_landings(),
                                 progress=lambda line: log.debug("trace: %s", line),
                                 memory_check=guard)
         # The wave's maps become this process's maps 0 .. len(maps)-1.
@@ -206,6 +207,11 @@ class PhotonMapper(mi.SamplingIntegrator):
         lobes too where eye paths trace glossy surfaces on, so that the caustic and the
         global maps split the paths where the eye paths do."""
         return "glossy" if self.params.glossy == "trace" else "delta"
+
+    def caustic_past_landings(self) -> bool:
+        """Whether caustic paths go on past surfaces they left by a delta lobe (see
+        :func:`~mi_partpm.trace.trace_photons`): where final gathering reads the maps."""
+        return False
 
     def min_bounce(self) -> int:
         """The fewest segments a stored photon has: 2 when direct light is sampled."""
@@ -467,8 +473,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         stop = (timed_out or asked) and done < self.passes
         if self.passes > 1:
             # Every process of the render stops after the same pass (the root's clock and
-            # request say which), or one would wait in the next pass's gather for ever.
-            # Asked after every pass, so a request made on one process alone is honoured too.
+            # request say which), or one would wait in the next pass's gather for ever:
+            # asked after every pass, so every process asks as often whatever it was told.
             stop = self.backend.agree(stop)
         info["last"] = stop or done == self.passes
         if self.passes > 1:
@@ -477,7 +483,8 @@ class PhotonMapper(mi.SamplingIntegrator):
             of = f"{self.passes}" if not self.time_limit else \
                 f"at most {self.passes} in {self.time_limit:g} s" \
                 if self.passes < UNTIL_TIME_LIMIT else f"as many as fit in {self.time_limit:g} s"
-            ending = (", stopped as asked" if asked else ", time limit reached") if stop \
+            ending = (", stopped as asked" if asked else ", time limit reached" if timed_out
+                      else ", stopped with the root process") if stop \
                 else f", about {info['eta']:.0f} s left"
             log.info("pass %d of %s: %d photons so far%s, %.1f s elapsed%s", done, of,
                      info["photons"], radius, elapsed, ending)

@@ -299,6 +299,9 @@ class PartPMIntegrator(PhotonMapper):
                             lobes=estimated_lobes(p.glossy),
                             glossy=p.glossy == "trace" and self.caustic_photon_count > 0)
 
+    def caustic_past_landings(self) -> bool:
+        return self.final_gather > 0
+
     def _passes_text(self) -> str:
         """The passes a render runs, in words: "1 pass", "64 passes", "passes until 30 s"."""
         if self.passes == UNTIL_TIME_LIMIT:

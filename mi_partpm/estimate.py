@@ -20,6 +20,7 @@ over the disc of radius r, so every kernel shares the normalisation 1/(pi r^2).
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import drjit as dr
@@ -29,6 +30,8 @@ import mitsuba as mi
 from .eyepath import lobe_context
 from .kdtree import knn_query, radius_query
 from .photonmap import PhotonMaps
+
+log = logging.getLogger("mi_partpm")
 
 __all__ = ["Flux", "gather_flux", "knn_flux", "radiance_estimate", "knn_radiance_estimate",
            "is_plain_diffuse", "note_bent_bsdfs", "KERNELS"]
@@ -84,8 +87,8 @@ def note_bent_bsdfs(scene: mi.Scene, samples: int = 16):
     at ``samples`` points, three directions each): those are estimated per photon, with
     f_r = eval / |cos|, instead of with one f_r for all photons (a normal map's light went
     to the wrong places: from 0.69 to 1.67 of path's). Called when a render starts."""
-    ids = _BENT["ids"]
-    changed = False
+    # Made again for every scene: Dr.Jit gives a freed BSDF's registry id to a new one.
+    ids = _BENT["ids"] = {}
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         if bsdf is None or not bool(is_plain_diffuse(mi.UInt32(int(bsdf.flags())))[0]):
@@ -96,12 +99,13 @@ def note_bent_bsdfs(scene: mi.Scene, samples: int = 16):
             # (wrappers such as normalmap, bumpmap, twosided, blendbsdf) are tested.
             ids[key] = bsdf.class_name() != LAMBERTIAN_CLASS and \
                 not _lambertian(scene, shape, bsdf, samples)
-            changed = True
-    if changed:
-        table = np.zeros(max(ids) + 1, dtype=np.uint32)
-        for key, bent in ids.items():
-            table[key] = bent
-        _BENT["table"] = mi.UInt32(table)
+    bent = [key for key, value in ids.items() if value]
+    table = None
+    if bent:
+        table = np.zeros(max(bent) + 1, dtype=np.uint32)
+        table[bent] = 1
+        table = mi.UInt32(table)
+    _BENT["table"] = table
 
 
 def _lambertian(scene, shape, bsdf, samples: int) -> bool:
@@ -115,6 +119,8 @@ def _lambertian(scene, shape, bsdf, samples: int) -> bool:
     mine = dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0]
     ok = si.is_valid() & (dr.reinterpret_array(mi.UInt32, si.shape) == mine)
     if not bool(dr.any(ok)[0]):
+        log.warning("could not test BSDF %s for a bent normal (no probe ray reached its "
+                    "shape): it is estimated as plain diffuse", bsdf.class_name())
         return True
     si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u[2], u[3]))
     ctx = mi.BSDFContext()

@@ -157,7 +157,8 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
                   min_bounce: int = 1, paths: str = "all", caustic_through: str = "delta",
                   progress: Optional[Callable[[str], None]] = None,
                   batch_size: int = TRACE_BATCH,
-                  memory_check: Optional[Callable[[float, int], None]] = None) -> Photons:
+                  memory_check: Optional[Callable[[float, int], None]] = None,
+                  caustic_past_landings: bool = False) -> Photons:
     """Trace ``photon_count`` photons split over ``map_count`` maps.
 
     Parameters
@@ -198,6 +199,12 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     memory_check : callable(stored_per_emitted, traced), optional
         Called after each batch but the last (the pilot batch included) with the measured
         photons stored per photon emitted; it may raise to stop before memory runs out.
+    caustic_past_landings : bool
+        A path that leaves a surface it could be stored on (one with a non-delta lobe) by a
+        delta lobe (a mask's pass-through, plastic's coat) stays a caustic one. Final
+        gathering needs it: its rays go on through such lobes and its visible points read
+        no global map. Otherwise such light stays in the global maps, denser than the
+        caustic ones.
 
     Returns
     -------
@@ -217,7 +224,8 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     if n_lanes == 0 or max_depth < 1:
         return empty_photons(photon_count, map_count)
     run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
-               min_bounce, PATHS.index(paths), caustic_through == "glossy")
+               min_bounce, PATHS.index(paths), caustic_through == "glossy",
+               caustic_past_landings)
     # Lane l of the traced maps -> (map, index within the map).
     ends = np.cumsum(sizes[maps])
     batches, segments, done = [], 0, 0
@@ -259,11 +267,12 @@ class _Run:
     """What every batch of one tracing run shares."""
 
     def __init__(self, scene, photon_count, seeds, max_depth, rr_depth, min_bounce, paths,
-                 through_glossy=False):
+                 through_glossy=False, past_landings=False):
         self.scene, self.photon_count = scene, photon_count
         self.seeds = mi.UInt64(seeds)
         self.max_depth, self.rr_depth, self.min_bounce = max_depth, rr_depth, min_bounce
         self.paths, self.through_glossy = paths, through_glossy
+        self.past_landings = past_landings
         self.table = _emitter_table(scene)
 
     def batch(self, lane_map: np.ndarray, lane_index: np.ndarray, per_lane: float):
@@ -483,6 +492,7 @@ def _trace_paths(run, map_id, photon_index, out, runs, capacity, width, counts=N
     store_from = dr.opaque(mi.UInt32, run.min_bounce)
     room = dr.opaque(mi.UInt32, capacity)       # a multiple of the run of slots
     paths, through_glossy = run.paths, run.through_glossy
+    past_landings = mi.Bool(bool(run.past_landings))
     delta_only = dr.full(mi.Bool, True, width)   # every bounce so far was delta (or glossy)
     photon_run, slot_run = claim_runs()
     photon_next = dr.zeros(mi.UInt32, width)     # the lane's run of photons: next, end
@@ -558,11 +568,10 @@ def _trace_paths(run, map_id, photon_index, out, runs, capacity, width, counts=N
         power *= bsdf_weight
         # The lobes a caustic path may bounce on before the surface it is stored on; the path
         # is no caustic one after that surface, whichever of its lobes it left by (a plastic's
-        # coat), since its caustic photon was stored there; but for a pass straight through
-        # (a mask's or a null BSDF's null lobe), which is no bounce: the light behind a mask
-        # is then a caustic, L S+ D, where final gathering reads it (it cannot see the light
-        # through the mask, as emitter sampling cannot).
-        passed = lands & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
+        # coat), since its caustic photon was stored there; with ``past_landings`` it stays
+        # one where it left by a delta lobe (a mask's pass-through, the coat), for final
+        # gathering: its rays go on through those lobes to the light only as caustics do.
+        passed = lands & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) & past_landings
         delta_only &= passes_through(bs.sampled_type, through_glossy) & (~lands | passed)
         if dr.hint(paths == 1, mode="scalar"):
             active &= ~lands | passed                   # no caustic photon after this one

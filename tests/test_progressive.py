@@ -252,10 +252,12 @@ def test_cli_ctrl_c_ends_a_progressive_render_with_the_image_so_far(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.exr", "p.png"]
 
     single = tmp_path / "s.exr"
-    render = _start_render(["cornell_box", "--photons", "50000000", "--resolution", "16x16",
-                            "-o", str(single)], tmp_path)
+    # 4 x 10^8 photons in 64 maps (waves of maps that fit): minutes of tracing on any
+    # machine, so 3 s after the scene is loaded the render is still under way.
+    render = _start_render(["cornell_box", "--photons", "400000000", "--maps", "64",
+                            "--resolution", "16x16", "-o", str(single)], tmp_path)
     _wait_for(render, "scene cornell_box")
-    time.sleep(3.0)                                   # tracing 5 x 10^7 photons by now
+    time.sleep(3.0)
     render.send_signal(signal.SIGINT)
     rest, _ = render.communicate(timeout=120)
     assert render.returncode == 130, rest

@@ -145,9 +145,10 @@ def check_writable(path, option: str):
         path.parent.mkdir(parents=True, exist_ok=True)
         if path.is_dir():
             raise UsageError(f"{option} {str(path)!r} is a folder: give a file name")
-        probe = path.with_name(f".{path.name}.probe")
+        # One probe per process: the ranks of an MPI job all check the same output.
+        probe = path.with_name(f".{path.name}.probe{os.getpid()}")
         probe.write_bytes(b"")
-        probe.unlink()
+        probe.unlink(missing_ok=True)
     except OSError as e:
         raise UsageError(f"{option} {str(path)!r} cannot be written: "
                          f"{e.strerror or e}") from None

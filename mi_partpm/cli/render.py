@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import logging
 import signal
+import threading
 import xml.etree.ElementTree as ElementTree
 from pathlib import Path
 
@@ -18,10 +19,11 @@ __all__ = ["run_render", "integrator_desc", "format_ranks"]
 log = logging.getLogger("mi_partpm")
 
 
-def _options(names, negation="") -> str:
-    """'--a applies' or '--a, --b apply' ('does not apply' with ``negation``)."""
-    verb = ("does not apply " if len(names) == 1 else "do not apply ") if negation else \
-        ("applies" if len(names) == 1 else "apply")
+def _options(names, negated: bool = False) -> str:
+    """'--a applies' or '--a, --b apply' ('does not apply', 'do not apply' if ``negated``)."""
+    one = len(names) == 1
+    verb = ("does not apply" if one else "do not apply") if negated else \
+        ("applies" if one else "apply")
     return f"{', '.join(names)} {verb}"
 
 
@@ -80,7 +82,7 @@ def integrator_desc(args) -> dict:
         unused = [o for o, v in (("--maps", args.maps), ("--radius", args.radius),
                                  ("--radius-fraction", args.radius_fraction)) if v]
         if unused:
-            raise UsageError(f"{_options(unused, 'not ')}to --integrator pm "
+            raise UsageError(f"{_options(unused, negated=True)} to --integrator pm "
                              f"(one map, k nearest photons: use --k, --max-radius)")
         if args.k is not None:
             desc["k"] = args.k
@@ -163,7 +165,8 @@ def run_render(args) -> int:
     from ..timing import Stopwatch
     if not setup(args, needs_plugins=args.integrator != "path"):
         return 0
-    out = _output_path(args)
+    if not args.output:
+        raise UsageError("render needs -o OUT.exr")
     given = _given_options(args)
     from_file = args.scene is not None and scene_file_integrator(args.scene)
     if from_file and given:
@@ -175,6 +178,7 @@ def run_render(args) -> int:
             integrator = mi.load_dict(integrator_desc(args))
         except (ValueError, RuntimeError) as e:
             raise UsageError(last_line(e)) from None
+    out = _output_path(args)           # after the options' checks: it makes the folders
     clock = Stopwatch()
     try:
         scene = mi_partpm.load_scene(args.scene, resolution=args.resolution, spp=args.spp,
@@ -187,9 +191,11 @@ def run_render(args) -> int:
         # A Python plugin's class_name() is its base class's ("SamplingIntegrator").
         args.integrator = type(integrator).__name__ if not type(integrator).__module__ \
             .startswith("mitsuba") else integrator.class_name()
-        if args.checkpoint_every and not hasattr(integrator, "on_pass"):
-            raise UsageError(f"--checkpoint-every needs a progressive partpm; the scene "
-                             f"file's integrator is {args.integrator}")
+        if args.checkpoint_every and not (getattr(integrator, "passes", 1) > 1 and
+                                          hasattr(integrator, "on_pass")):
+            raise UsageError(f"--checkpoint-every writes the image between passes: the scene "
+                             f"file's integrator ({args.integrator}) is not a progressive "
+                             f"partpm (passes > 1 or time_limit)")
     film = scene.sensors()[0].film()
     log.info("scene %s: %dx%d, %s%s", args.scene, film.size()[0], film.size()[1], integrator,
              " (the scene file's integrator)" if integrator is scene.integrator() else "")
@@ -222,8 +228,12 @@ class _stop_on_interrupt:
     def __init__(self, integrator):
         self.integrator = integrator
         self.asked = False
+        # Not where Ctrl-C was ignored on entry (a background job) or off the main thread
+        # (where Python cannot install a handler).
         self.active = getattr(integrator, "passes", 1) > 1 and \
-            hasattr(integrator, "stop_requested")
+            hasattr(integrator, "stop_requested") and \
+            threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
 
     def _handler(self, signum, frame):
         if self.asked:

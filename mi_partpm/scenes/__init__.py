@@ -134,7 +134,8 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
     """Where Mitsuba's box of the scene misses shapes (:func:`scene_bounds`), the emitters at
     infinity (environment, directional, sun) would emit their photons from the wrong sphere
     (from a point, for an invalid box): they are pointed at the sphere around the shapes'
-    true box, once, with a warning."""
+    true box (at every call: a freed scene's id and box may come back), with a warning once
+    per scene name and box."""
     if not scene.shapes():
         return
     true_box = scene_bounds(scene)
@@ -142,15 +143,14 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
         return
     infinite = [e for e in scene.emitters()
                 if mi.has_flag(e.flags(), mi.EmitterFlags.Infinite)]
-    key = (id(scene), str(true_box))
-    if key in _REPAIRED:
-        return
-    _REPAIRED.add(key)
     what = "the scene" if name is None else f"scene {name!r}"
-    log.warning("Mitsuba's bounding box of %s leaves out shapes (it merged shapes that share "
-                "a BSDF into a mesh without a box): photon mapping uses the box of their "
-                "vertices, %s to %s%s", what, list(true_box.min), list(true_box.max),
-                ", also for the emitters at infinity" if infinite else "")
+    key = (what, str(true_box))
+    if key not in _WARNED:             # the repair itself is made every time: it is cheap
+        _WARNED.add(key)
+        log.warning("Mitsuba's bounding box of %s leaves out shapes (it merged shapes that "
+                    "share a BSDF into a mesh without a box): photon mapping uses the box of "
+                    "their vertices, %s to %s%s", what, list(true_box.min), list(true_box.max),
+                    ", also for the emitters at infinity" if infinite else "")
     if infinite:
         centre, half = true_box.center(), true_box.extents() * 0.5
         stand_in = mi.load_dict({"type": "scene", "box": {
@@ -160,8 +160,8 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
             emitter.set_scene(stand_in)
 
 
-#: (scene, box) pairs whose emitters at infinity were pointed at the shapes' box already.
-_REPAIRED = set()
+#: (scene name, box) pairs already warned about.
+_WARNED = set()
 
 
 def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool = True):
