@@ -87,8 +87,31 @@ def _splits_lobes(bsdf, samples: int = 64) -> bool:
     values = [np.array(bsdf.eval(lobe_context(lobes), si, wo)) for lobes in (
         None, mi.BSDFFlags.Diffuse, mi.BSDFFlags.Glossy | mi.BSDFFlags.Delta)]
     every, diffuse, rest = values
-    scale = float(np.abs(every).max(initial=0.0))
-    return scale == 0.0 or float(np.abs(diffuse + rest - every).max()) <= 1e-3 * scale
+    return values_agree(every, [diffuse + rest])
+
+
+def values_agree(reference: np.ndarray, others, tolerance: float = 1e-3) -> bool:
+    """Whether every array of ``others`` equals ``reference`` within ``tolerance`` times
+    the largest magnitude in ``reference`` (all agree where it is all 0): how a BSDF's
+    values are compared when a scene's BSDFs are probed (:func:`unsplit_bsdfs`,
+    :func:`~mi_partpm.estimate.note_bent_bsdfs`)."""
+    scale = float(np.abs(reference).max(initial=0.0))
+    return scale == 0.0 or all(float(np.abs(o - reference).max()) <= tolerance * scale
+                               for o in others)
+
+
+def registry_id(bsdf) -> int:
+    """A BSDF's registry id: what ``dr.reinterpret_array(mi.UInt32, bsdf_ptr)`` gives per
+    lane, and the index of per-BSDF tables such as :func:`registry_table`'s."""
+    return int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
+
+
+def registry_table(flags: dict) -> mi.UInt32:
+    """A device table indexed by registry id: 1 where ``flags[id]`` is true, 0 elsewhere
+    (ids beyond it are 0 too, for a lookup masked by its width)."""
+    table = np.zeros(max(flags, default=0) + 1, dtype=np.uint32)
+    table[[key for key, value in flags.items() if value]] = 1
+    return mi.UInt32(table)
 
 
 def unsplit_bsdfs(scene: mi.Scene) -> mi.UInt32:
@@ -102,7 +125,7 @@ def unsplit_bsdfs(scene: mi.Scene) -> mi.UInt32:
         if bsdf is None or not (int(bsdf.flags()) & int(mi.BSDFFlags.Diffuse)
                                 and int(bsdf.flags()) & int(mi.BSDFFlags.Glossy)):
             continue
-        key = int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
+        key = registry_id(bsdf)
         if key not in found:
             found[key] = not _splits_lobes(bsdf)
             name = f"{bsdf.class_name()} {bsdf.id()!r}" if bsdf.id() else bsdf.class_name()
@@ -112,10 +135,7 @@ def unsplit_bsdfs(scene: mi.Scene) -> mi.UInt32:
                             "BSDFContext.type_mask): with glossy = 'trace' its surfaces are "
                             "estimated from the maps with every lobe, as with glossy = 'map'",
                             name)
-    table = np.zeros(max(found, default=0) + 1, dtype=np.uint32)
-    for key, unsplit in found.items():
-        table[key] = unsplit
-    return mi.UInt32(table)
+    return registry_table(found)
 
 
 def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf,

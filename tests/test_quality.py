@@ -482,15 +482,15 @@ def test_a_normal_map_is_estimated_per_photon():
     of path's; now 0.82-1.06 (photons that bounce off the bent surfaces still lack the
     adjoint correction for the bent normal, which Mitsuba's plugin keeps to itself).
     Bounds: every tile in [0.75, 1.15], about 3% of noise per tile away from both."""
-    from mi_partpm.estimate import _BENT, note_bent_bsdfs
+    from mi_partpm.estimate import note_bent_bsdfs
+    from mi_partpm.eyepath import registry_id
     tilt = np.zeros((4, 4, 3), dtype=np.float32) + np.array([0.8, 0.5, 0.9], np.float32)
     bent = {"type": "normalmap", "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(tilt),
                                                "raw": True},
             "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.7}}}
     scene = _room(bent, size=32, spp=8)
-    note_bent_bsdfs(scene)
-    flags = {s.id(): bool(_BENT["ids"][int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(
-        s.bsdf()))[0])]) for s in scene.shapes()}
+    bent = note_bent_bsdfs(scene)
+    flags = {s.id(): bent[registry_id(s.bsdf())] for s in scene.shapes()}
     assert any(flags.values()) and not all(flags.values()), flags   # walls bent, ceiling not
     ref = path_reference(scene, 512, 128)
     img = render(scene, mi.load_dict({"type": "partpm", "photon_count": 300_000}))

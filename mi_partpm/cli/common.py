@@ -10,7 +10,7 @@ from ..props import check_float, check_int
 
 __all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
            "int_list", "setup", "progress", "last_line", "interrupted", "write_atomic",
-           "check_writable"]
+           "check_writable", "check_variant_name"]
 
 
 class UsageError(Exception):
@@ -80,14 +80,20 @@ def int_list(option, text):
     return values
 
 
+def check_variant_name(variant: str):
+    """Refuse a ``--variant`` that this Mitsuba does not have, naming those it has."""
+    import mitsuba as mi
+    if variant not in mi.variants():
+        raise UsageError(f"--variant {variant!r} is not a Mitsuba variant; available: "
+                         f"{', '.join(mi.variants())}")
+
+
 def setup(args, needs_plugins=True) -> bool:
     """Choose the variant, import the plugins, answer --list, check SCENE. True: go on."""
     import mitsuba as mi
 
     from .. import plugins
-    if args.variant not in mi.variants():
-        raise UsageError(f"--variant {args.variant!r} is not a Mitsuba variant; available: "
-                         f"{', '.join(mi.variants())}")
+    check_variant_name(args.variant)
     if needs_plugins:
         try:
             plugins.check_variant(args.variant, hint="--variant llvm_ad_rgb")

@@ -6,7 +6,7 @@ Each reads its options, calls the experiment in :mod:`mi_partpm.experiments` (or
 """
 from __future__ import annotations
 
-from .common import UsageError, int_list, last_line, progress, setup
+from .common import UsageError, check_variant_name, int_list, last_line, progress, setup
 
 __all__ = ["run_compare", "run_speedup", "run_bench", "run_hwsim", "run_scaling",
            "run_converge", "run_calibrate"]
@@ -137,11 +137,8 @@ def run_calibrate(args) -> int:
 
 
 def run_scaling(args) -> int:
-    import mitsuba as mi
     from ..experiments.scaling import format_scaling, run_scaling
-    if args.variant not in mi.variants():            # before any rank starts
-        raise UsageError(f"--variant {args.variant!r} is not a Mitsuba variant; available: "
-                         f"{', '.join(mi.variants())}")
+    check_variant_name(args.variant)                 # before any rank starts
     ranks = int_list("--ranks", args.ranks)
     extra = ["-f", args.hostfile] if args.hostfile else []
     try:

@@ -45,22 +45,22 @@ def integrator_desc(args) -> dict:
         desc = {"type": args.integrator, "photon_count": args.photons or 100_000,
                 "seed": args.seed, "max_depth": max_depth,
                 "direct": args.direct or "photons"}
-    progressive = [o for o, v in (("--passes", args.passes), ("--alpha", args.alpha),
-                                  ("--time", args.time),
-                                  ("--checkpoint-every", args.checkpoint_every)) if v]
-    if progressive and args.integrator != "partpm":
-        raise UsageError(f"{_options(progressive)} to --integrator partpm only (the "
+    progressive_options = [o for o, v in (
+        ("--passes", args.passes), ("--alpha", args.alpha), ("--time", args.time),
+        ("--checkpoint-every", args.checkpoint_every)) if v]
+    if progressive_options and args.integrator != "partpm":
+        raise UsageError(f"{_options(progressive_options)} to --integrator partpm only (the "
                          f"progressive photon mapper)")
-    if args.alpha is not None and not args.time and (args.passes or 1) == 1:
-        raise UsageError("--alpha sets how fast the radius shrinks between passes: it needs a "
-                         "progressive render (--passes P > 1, or --time SECONDS)")
-    if args.checkpoint_every and args.passes and not args.time and \
-            args.checkpoint_every > args.passes:
+    progressive = bool(args.time) or (args.passes or 1) > 1
+    for option, value, what in (("--alpha", args.alpha, "sets how fast the radius shrinks"),
+                                ("--checkpoint-every", args.checkpoint_every,
+                                 "writes the image")):
+        if value is not None and not progressive:
+            raise UsageError(f"{option} {what} between passes: it needs a progressive render "
+                             f"(--passes P > 1, or --time SECONDS)")
+    if args.checkpoint_every and not args.time and args.checkpoint_every > args.passes:
         raise UsageError(f"--checkpoint-every {args.checkpoint_every} would write no "
                          f"checkpoint in {args.passes} passes: give K <= --passes")
-    if args.checkpoint_every and not args.time and (args.passes or 1) == 1:
-        raise UsageError("--checkpoint-every writes the image between passes: it needs a "
-                         "progressive render (--passes P > 1, or --time SECONDS)")
     if args.integrator != "path":
         for key, value in (("kernel", args.kernel), ("glossy", args.glossy),
                            ("glossy_samples", args.glossy_samples)):
@@ -132,20 +132,17 @@ def _given_options(args) -> list:
 def scene_file_integrator(scene: str) -> bool:
     """Whether ``scene`` is a scene file with an ``<integrator>`` of its own (at the top
     level: Mitsuba's default when it has none is ``path``, which cannot be told apart)."""
-    from ..scenes import scene_path
+    from ..scenes import scene_names, scene_path
+    if scene in scene_names():                # the built-in scenes leave the integrator to us
+        return False
     try:
-        path = scene_path(scene)
-        if path.parent == Path(__file__).resolve().parent.parent / "scenes":
-            return False                      # the built-in scenes leave the integrator to us
-        root = ElementTree.parse(path).getroot()
+        root = ElementTree.parse(scene_path(scene)).getroot()
     except (OSError, ValueError, ElementTree.ParseError):
         return False
     return any(child.tag == "integrator" for child in root)
 
 
 def _output_path(args) -> Path:
-    if not args.output:
-        raise UsageError("render needs -o OUT.exr")
     out = Path(args.output)
     if out.suffix.lower() != ".exr":
         raise UsageError(f"-o must name an .exr file, got {args.output!r}")
@@ -186,7 +183,8 @@ def run_render(args) -> int:
         check_scene(scene, args.scene)
     except (FileNotFoundError, ValueError) as e:
         raise UsageError(str(e)) from None
-    if integrator is None:              # the scene file's own, as Mitsuba would render it
+    own = integrator is None
+    if own:                             # the scene file's own, as Mitsuba would render it
         integrator = scene.integrator()
         # A Python plugin's class_name() is its base class's ("SamplingIntegrator").
         args.integrator = type(integrator).__name__ if not type(integrator).__module__ \
@@ -198,7 +196,7 @@ def run_render(args) -> int:
                              f"partpm (passes > 1 or time_limit)")
     film = scene.sensors()[0].film()
     log.info("scene %s: %dx%d, %s%s", args.scene, film.size()[0], film.size()[1], integrator,
-             " (the scene file's integrator)" if integrator is scene.integrator() else "")
+             " (the scene file's integrator)" if own else "")
     seconds = {"load": clock.lap()}
     if args.checkpoint_every:
         integrator.on_pass = _checkpoints(args.checkpoint_every, out, integrator)

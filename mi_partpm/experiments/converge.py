@@ -175,7 +175,10 @@ def _path(s: ConvergeSettings, ref, say) -> list:
     scene = _scene(s)
     integrator = mi.load_dict({"type": "path"})
 
+    rendered = []
+
     def render(spp):
+        rendered.append(spp)
         total, seconds = 0.0, 0.0
         for chunk in range(-(-spp // PATH_CHUNK_SPP)):
             n = min(PATH_CHUNK_SPP, spp - chunk * PATH_CHUNK_SPP)
@@ -184,7 +187,7 @@ def _path(s: ConvergeSettings, ref, say) -> list:
             total, seconds = total + _image(img) * n, seconds + t
         return total / spp, seconds
     rows = _doubling("path", s, ref, say, render, 1, "spp")
-    most = int(rows[-1]["setting"].split()[0]) if rows else 0
+    most = max(rendered, default=0)
     if 4 * most > s.reference_spp:
         # The error of path at n spp against a reference of R spp is its own noise plus the
         # reference's, which is n / R of it: over a quarter, the curve measures the reference.

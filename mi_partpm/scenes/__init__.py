@@ -26,6 +26,8 @@ import mitsuba as mi
 
 from ..data import find_data_file
 
+log = logging.getLogger("mi_partpm")
+
 __all__ = ["scene_names", "scene_path", "load_scene", "check_scene", "scene_bounds"]
 
 _HERE = Path(__file__).resolve().parent
@@ -108,9 +110,6 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
         return mi.load_file(str(path), **{k: str(v) for k, v in params.items()})
     except RuntimeError as e:
         raise ValueError(f"could not load scene {str(path)!r}: {e}") from None
-
-
-log = logging.getLogger("mi_partpm")
 
 
 def scene_bounds(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
