@@ -22,11 +22,13 @@ threads writing beside each other, cost a fifth of the kernel on 2 cores.
 Nothing goes to the host during a batch. The slots are claimed in whatever order the
 threads run; each path's count of stored photons, its prefix sum and each photon's rank put
 them back in the order of the photons without a sort, so every run gives the same arrays.
-A pilot batch of a sixteenth of a batch measures the photons stored per path first, and the
-later batches size their buffers from it, with room for a part-full run of slots per lane
-at work; a batch whose lanes claim more slots than its buffer holds is traced again with a
-buffer that holds them (the streams are deterministic, so the photons are the same). The
-result is :class:`~mi_partpm.photons.Photons`, on the device.
+A pilot of a few thousand paths measures the photons stored per path first (its photons
+are traced again by the first batch), and the batches size their buffers from it, with
+room for a part-full run of slots per lane at work; a batch whose lanes claim more slots
+than its buffer holds is traced again with a buffer that holds them (the streams are
+deterministic, so the photons are the same). Each photon's map and its index in the map,
+which seed its stream, come from its index in the run on the device. The result is
+:class:`~mi_partpm.photons.Photons`, on the device.
 """
 from __future__ import annotations
 
@@ -192,13 +194,15 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     progress : callable(str), optional
         Receives a line per batch.
     batch_size : int
-        Photon paths traced together at most; more run in batches (same photons). The
-        first batch is a pilot of ``batch_size // 16`` paths (at least 1024, at most
-        ``batch_size``) that measures how many photons a path stores, so that later
-        batches size their buffers.
+        Photon paths traced together at most; more run in batches (same photons). A run
+        of more paths than a pilot (``batch_size // 16`` paths, at least 1024, at most
+        8192 and ``batch_size``) traces a pilot first that measures how many photons a
+        path stores, so that the batches size their buffers; the first batch traces the
+        pilot's paths again and keeps them.
     memory_check : callable(stored_per_emitted, traced), optional
-        Called after each batch but the last (the pilot batch included) with the measured
-        photons stored per photon emitted; it may raise to stop before memory runs out.
+        Called after the pilot and after each batch but the last with the measured photons
+        stored per photon emitted and the photons traced for it; it may raise to stop
+        before memory runs out.
     caustic_past_landings : bool
         A path that leaves a surface it could be stored on (one with a non-delta lobe) by a
         delta lobe (a mask's pass-through, plastic's coat) stays a caustic one. Final
@@ -225,66 +229,91 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         return empty_photons(photon_count, map_count)
     run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
                min_bounce, PATHS.index(paths), caustic_through == "glossy",
-               caustic_past_landings)
-    # Lane l of the traced maps -> (map, index within the map).
-    ends = np.cumsum(sizes[maps])
-    batches, segments, done = [], 0, 0
-    # A pilot batch measures the photons stored per path before full batches size their
-    # buffers: a buffer too small for a batch means tracing that batch again (a scene of
-    # white walls stores 7 photons per path, the Cornell box 3).
-    pilot = min(n_lanes, batch_size, max(PILOT_MIN, batch_size // PILOT_SHARE))
+               caustic_past_landings, maps, sizes[maps])
+    # A pilot of a few thousand paths measures the photons stored per path before the
+    # batches size their buffers: a buffer too small for a batch means tracing that batch
+    # again (a scene of white walls stores 7 photons per path, the Cornell box 3). The
+    # pilot's photons are traced again by the first batch, so that a run of one batch
+    # hands its photons over as they come, with no copy into a run of several batches.
+    pilot = min(batch_size, max(PILOT_MIN, min(PILOT_MAX, batch_size // PILOT_SHARE)))
     per_lane = float(min(max_depth, PILOT_GUESS))
-    for first in [0, *range(pilot, n_lanes, batch_size)]:
+    if n_lanes > pilot:
+        stored, _ = run.batch(0, pilot, per_lane, keep=False)
+        per_lane = max(stored / pilot, 0.05)
+        if memory_check is not None:
+            memory_check(stored / pilot, pilot)
+    batches, segments, stored = [], 0, 0
+    for first in range(0, n_lanes, batch_size):
         # Batches only bound the memory: every lane's random stream depends on its (map,
         # index in the map) alone, so the photons are the same for any batch size.
-        last = min(first + (pilot if first == 0 else batch_size), n_lanes)
-        lanes = np.arange(first, last, dtype=np.int64)
-        which = np.searchsorted(ends, lanes, side="right")
-        index = lanes - (ends[which] - sizes[maps][which])
-        photons, traced = run.batch(maps[which].astype(np.uint32), index.astype(np.uint64),
-                                    per_lane)
+        done = min(first + batch_size, n_lanes)
+        photons, traced = run.batch(first, done - first, per_lane)
         batches.append(photons)
         segments += traced
-        done = int(lanes[-1]) + 1
-        stored = sum(len(b) for b in batches)
+        stored += len(photons)
         per_lane = max(stored / done, 0.05)
         if memory_check is not None and done < n_lanes:
             memory_check(stored / done, done)
-        if progress is not None and n_lanes > pilot:
+        if progress is not None and n_lanes > batch_size:
             progress(f"batch: {done} of {n_lanes} photons traced, {stored} stored")
     photons = _concat(batches, photon_count, map_count)
     photons.segments = segments
     return photons
 
 
-#: The pilot batch: ``batch_size // PILOT_SHARE`` paths, at least ``PILOT_MIN`` (at most
-#: ``batch_size``), with room for ``PILOT_GUESS`` stored photons per path (47 MB of slots and
-#: bounce words for the 2^16 paths of the default batch size).
-PILOT_SHARE, PILOT_MIN, PILOT_GUESS = 16, 1024, 16
+#: The pilot: ``batch_size // PILOT_SHARE`` paths, at least ``PILOT_MIN`` and at most
+#: ``PILOT_MAX`` (and ``batch_size``), with room for ``PILOT_GUESS`` stored photons per path
+#: (6 MB of slots and bounce words for 2^13 paths). A run of no more paths than that is
+#: traced in one batch of that room, without a pilot.
+PILOT_SHARE, PILOT_MIN, PILOT_MAX, PILOT_GUESS = 16, 1024, 1 << 13, 16
 
 
 class _Run:
     """What every batch of one tracing run shares."""
 
     def __init__(self, scene, photon_count, seeds, max_depth, rr_depth, min_bounce, paths,
-                 through_glossy=False, past_landings=False):
+                 through_glossy=False, past_landings=False, maps=(0,), sizes=None):
         self.scene, self.photon_count = scene, photon_count
         self.seeds = mi.UInt64(seeds)
         self.max_depth, self.rr_depth, self.min_bounce = max_depth, rr_depth, min_bounce
         self.paths, self.through_glossy = paths, through_glossy
         self.past_landings = past_landings
         self.table = _emitter_table(scene)
+        # The run's paths, the traced maps' photons one map after another: path l is photon
+        # l - starts[k] of map maps[k], for the k with starts[k] <= l < ends[k].
+        maps = np.asarray(maps, dtype=np.int64)
+        sizes = np.ones_like(maps) if sizes is None else np.asarray(sizes, dtype=np.int64)
+        ends = np.cumsum(sizes)
+        self.map_total = int(maps.shape[0])
+        self.maps = mi.UInt32(maps.astype(np.uint32))
+        self.ends = mi.UInt32(ends.astype(np.uint32))
+        self.starts = mi.UInt32((ends - sizes).astype(np.uint32))
 
-    def batch(self, lane_map: np.ndarray, lane_index: np.ndarray, per_lane: float):
-        """Trace one batch; returns (photons, ray segments traced)."""
-        lanes = lane_map.shape[0]
+    def map_and_index(self, path, active=True):
+        """The map of each of the run's ``path`` indices and its photon's index in that map
+        (on the device: a branch-free binary search over the traced maps' ends)."""
+        k = dr.zeros(mi.UInt32, dr.width(path))
+        count = self.map_total
+        while count > 1:                          # the first k with ends[k] > path
+            half = count // 2
+            k = dr.select(dr.gather(mi.UInt32, self.ends, k + (half - 1), active) <= path,
+                          k + half, k)
+            count -= half
+        if self.map_total > 1:
+            k += dr.select(dr.gather(mi.UInt32, self.ends, k, active) <= path, 1, 0)
+        return (dr.gather(mi.UInt32, self.maps, k, active),
+                path - dr.gather(mi.UInt32, self.starts, k, active))
+
+    def batch(self, start: int, photons: int, per_lane: float, keep: bool = True):
+        """Trace the run's paths ``start .. start + photons - 1``; returns (photons, ray
+        segments traced), or with ``keep`` False (a pilot) (photons stored, segments)."""
         slot_run = claim_runs()[1]
-        capacity = _round_up(max(1024, int(lanes * per_lane * 1.25))
-                             + run_slack(lane_count(lanes), slot_run), slot_run)
+        capacity = _round_up(max(1024, int(photons * per_lane * 1.25))
+                             + run_slack(lane_count(photons), slot_run), slot_run)
         ranked = True
         while True:
-            out, counts, too_deep, runs, segments = self._kernel(
-                mi.UInt32(lane_map), mi.UInt64(lane_index), capacity, ranked)
+            out, counts, too_deep, runs, segments = self._kernel(start, photons, capacity,
+                                                                 ranked)
             used = int(runs[0]) * slot_run        # slots in the runs the lanes claimed
             if ranked and int(too_deep[0]) > 0:
                 ranked = False                    # a bounce count did not fit beside a rank
@@ -294,6 +323,11 @@ class _Run:
             # depends on how the threads ran: with runs, a tenth more).
             capacity = max(capacity, _round_up(used + (used // 10 if slot_run > 1 else 0),
                                                slot_run))
+        if not keep:
+            fill = out[2]
+            stored = used if slot_run == 1 or used == 0 else int(dr.sum(dr.gather(
+                mi.UInt32, fill, dr.arange(mi.UInt32, used // slot_run)))[0])
+            return stored, int(segments[0])
         if used == 0:
             return empty_photons(self.photon_count, 0), int(segments[0])
         # The slots were claimed in whatever order the threads ran: put the photons in the
@@ -339,16 +373,14 @@ class _Run:
         channels = spectrum_channels()
         flux = mi.Spectrum(*[rec[4 + c] for c in range(channels)])
         photon = dr.reinterpret_array(mi.UInt32, rec[SLOT_FLOATS - 1])
-        # A photon's map is its lane's.
-        maps = dr.gather(mi.UInt32, mi.UInt32(lane_map), photon)
+        maps = self.map_and_index(photon + dr.opaque(mi.UInt32, start))[0]
         photons = Photons(mi.Point3f(rec[0], rec[1], rec[2]),
                           dr.reinterpret_array(mi.UInt32, rec[3]), flux, maps, bounce,
                           emitted=self.photon_count, map_count=0)
         dr.eval(photons.points, photons.code, photons.flux, photons.maps, photons.bounces)
         return photons, int(segments[0])
 
-    def _kernel(self, map_id, lane_index, capacity, ranked):
-        photons = dr.width(map_id)
+    def _kernel(self, first, photons, capacity, ranked):
         # Uninitialised: only the slots the kernel writes are read. Every run of slots is
         # full but a lane's last, whose fill the lane writes when it is done.
         slot_run = claim_runs()[1]
@@ -361,7 +393,7 @@ class _Run:
         # Recording the loop once instead of twice (the loop optimisation's second recording)
         # saves about 0.2 s a call; the kernel is the same.
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
-            segments = _trace_paths(self, map_id, lane_index, out, runs, capacity,
+            segments = _trace_paths(self, first, photons, out, runs, capacity,
                                     lane_count(photons), counts, too_deep)
         total = dr.sum(segments)
         dr.eval([a for a in out if a is not None], counts, too_deep, runs, total)
@@ -457,11 +489,11 @@ def shading_correction(si, wi):
 
 
 @dr.syntax
-def _trace_paths(run, map_id, photon_index, out, runs, capacity, width, counts=None,
+def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=None,
                  too_deep=None):
     """The bounce loop of one batch (one kernel): take a photon, store, scatter, roulette.
 
-    ``width`` lanes share the batch's photons (``map_id`` and ``photon_index`` per photon): a
+    ``width`` lanes share the batch's photons (the run's paths ``first`` and on): a
     lane whose path has ended takes the next photon of its run (claiming a run with
     ``dr.scatter_inc`` when its run is used up) and starts it from its own random stream
     (map, index), so a photon is the same whichever lane traces it, and a SIMD packet does
@@ -475,7 +507,8 @@ def _trace_paths(run, map_id, photon_index, out, runs, capacity, width, counts=N
     scene = run.scene
     slots, bounces, fill = out
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
-    photons = dr.opaque(mi.UInt32, dr.width(map_id))
+    photons = dr.opaque(mi.UInt32, photon_total)
+    path_base = dr.opaque(mi.UInt32, first)
     queue = dr.zeros(mi.UInt32, 1)
     rng = mi.PCG32(width)
     ray = dr.zeros(mi.Ray3f, width)
@@ -516,9 +549,8 @@ def _trace_paths(run, map_id, photon_index, out, runs, capacity, width, counts=N
                        done & (slot_end > 0) & (slot_end <= room))
         if fresh:
             start = mi.PCG32(width)
-            start.seed(dr.gather(mi.UInt64, run.seeds,
-                                 dr.gather(mi.UInt32, map_id, claim, fresh), fresh),
-                       dr.gather(mi.UInt64, photon_index, claim, fresh))
+            map_id, index = run.map_and_index(claim + path_base, fresh)
+            start.seed(dr.gather(mi.UInt64, run.seeds, map_id, fresh), mi.UInt64(index))
             new_ray, new_power = emit(scene, start, run.photon_count, run.table, fresh)
             rng = dr.select(fresh, start, rng)
             ray = dr.select(fresh, new_ray, ray)

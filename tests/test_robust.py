@@ -88,11 +88,11 @@ def test_resolution_for_a_scene_without_resx_says_so(tmp_path, capsys):
 def test_memory_is_checked_again_while_tracing_in_batches():
     scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
     seen = []
-    # After the pilot batch (5000 // 16 paths, raised to the minimum 1024) and after every
-    # full batch but the last.
+    # After the pilot (5000 // 16 paths, raised to the minimum 1024) and after every full
+    # batch but the last.
     trace_photons(scene, 20_000, 4, 0, batch_size=5000,
                   memory_check=lambda ratio, done: seen.append((ratio, done)))
-    assert [done for _, done in seen] == [1024, 6024, 11024, 16024]
+    assert [done for _, done in seen] == [1024, 5000, 10000, 15000]
     # The measured ratio of stored to emitted photons in the Cornell box is about 3.
     assert all(2.0 < ratio < 4.0 for ratio, _ in seen)
 
@@ -133,21 +133,43 @@ def record_tracer_kernels(monkeypatch):
     calls = []
     kernel = trace._Run._kernel
 
-    def recorded(self, map_id, lane_index, capacity, ranked):
-        calls.append((dr.width(map_id), ranked))
-        return kernel(self, map_id, lane_index, capacity, ranked)
+    def recorded(self, start, photons, capacity, ranked):
+        calls.append((photons, ranked))
+        return kernel(self, start, photons, capacity, ranked)
     monkeypatch.setattr(trace._Run, "_kernel", recorded)
     return calls
 
 
 def test_no_batch_is_traced_twice_where_paths_store_many_photons(monkeypatch):
-    """The pilot batch measures the photons stored per path before the full batches size
-    their buffers, so a scene that stores twice the Cornell box's does not trace a batch
-    again (a buffer too small means tracing that batch again)."""
+    """The pilot measures the photons stored per path before the batches size their
+    buffers, so a scene that stores twice the Cornell box's does not trace a batch again (a
+    buffer too small means tracing that batch again). The pilot's paths are traced again by
+    the first batch: a run of one batch is the pilot and that batch."""
     calls = record_tracer_kernels(monkeypatch)
     photons = trace_photons(closed_white_box(), 60_000, 2, 0, batch_size=32_000)
     assert len(photons) / 60_000 > 5
-    assert [width for width, _ in calls] == [2000, 32_000, 26_000]
+    assert [width for width, _ in calls] == [2000, 32_000, 28_000]
+    calls.clear()
+    assert_same_photons(photons, trace_photons(closed_white_box(), 60_000, 2, 0))
+    assert [width for width, _ in calls] == [8192, 60_000]
+
+
+def test_each_path_seeds_its_maps_stream_on_the_device():
+    """A path's map and its photon's index in the map, which seed its random stream, come
+    from its index in the run by a search on the device: against NumPy's, for runs of one
+    map, of a few, and of maps traced by one rank of several."""
+    import mi_partpm.trace as trace
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    for maps, sizes in (([0], [5]), ([0, 1, 2], [4, 0, 7]), ([1, 4, 6, 9, 12], [3, 3, 1, 5, 2]),
+                        (list(range(33)), list(range(1, 34)))):
+        run = trace._Run(scene, 100, trace.map_seeds(1, 40), 8, 5, 1, 0, maps=maps,
+                         sizes=sizes)
+        ends = np.cumsum(sizes)
+        path = np.arange(ends[-1])
+        k = np.searchsorted(ends, path, side="right")
+        got_map, got_index = run.map_and_index(mi.UInt32(path.astype(np.uint32)))
+        np.testing.assert_array_equal(got_map.numpy(), np.asarray(maps)[k])
+        np.testing.assert_array_equal(got_index.numpy(), path - (ends[k] - np.asarray(sizes)[k]))
 
 
 def test_photons_are_put_in_order_by_rank_as_by_a_sort(monkeypatch):
@@ -219,15 +241,14 @@ def test_a_buffer_too_small_for_the_runs_traces_the_batch_again(monkeypatch, slo
         pytest.skip("on CUDA a run is one slot, so a buffer that holds every stored photon "
                     "holds every run: there is no such case to trace again")
     scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
-    run = trace._Run(scene, 20_000, trace.map_seeds(1, 1), 64, 5, 1, 0)
-    lane_map, lane_index = np.zeros(20_000, np.uint32), np.arange(20_000, dtype=np.uint64)
+    run = trace._Run(scene, 20_000, trace.map_seeds(1, 1), 64, 5, 1, 0, sizes=[20_000])
     calls = record_tracer_kernels(monkeypatch)
-    roomy, _ = run.batch(lane_map, lane_index, per_lane=16.0)
+    roomy, _ = run.batch(0, 20_000, per_lane=16.0)
     assert len(calls) == 1
     monkeypatch.setattr(trace, "SLOT_RUN", slot_run)
     monkeypatch.setattr(trace, "run_slack", lambda lanes, run: 0)
     calls.clear()
-    small, _ = run.batch(lane_map, lane_index, per_lane=per_lane)
+    small, _ = run.batch(0, 20_000, per_lane=per_lane)
     first_buffer = trace._round_up(max(1024, int(20_000 * per_lane * 1.25)), slot_run)
     assert len(calls) >= 2 and (len(small) <= first_buffer) == photons_fit
     for field in ("points", "code", "flux", "maps", "bounces"):
