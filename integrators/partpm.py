@@ -10,6 +10,7 @@ from mi_partpm.backends import BACKENDS, make_backend
 from mi_partpm.estimate import gather_flux
 from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.gather import final_gather
+from mi_partpm.kdtree import MAX_MAPS
 from mi_partpm.integrators.common import UNTIL_TIME_LIMIT, Layer, PhotonMapper, Term
 from mi_partpm.photonmap import fixed_radius
 from mi_partpm.progressive import RadianceSum, SPPMState, accumulate, radius_schedule
@@ -186,8 +187,10 @@ class PartPMIntegrator(PhotonMapper):
 
     def read_estimator_props(self, props):
         n = self.params.photon_count
-        self.map_count = read_int(props, "map_count", 1, low=1, high=n,
-                                  allowed=f"in [1, photon_count = {n}]")
+        high = min(n, MAX_MAPS)
+        self.map_count = read_int(props, "map_count", 1, low=1, high=high,
+                                  allowed=f"in [1, photon_count = {n}]" if high == n else
+                                  f"in [1, {MAX_MAPS}] (the most maps a forest holds)")
         self.time_limit = read_float(props, "time_limit", 0.0, low=0.0, low_open=False)
         # Without ``passes``, a time limit means passes until it is reached.
         self.passes = read_int(props, "passes", 1, low=1) \

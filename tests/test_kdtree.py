@@ -6,7 +6,7 @@ from scipy.spatial import cKDTree
 import drjit as dr
 import mitsuba as mi
 
-from mi_partpm.kdtree import build_forest, knn_neighbours, knn_query, radius_query
+from mi_partpm.kdtree import build_forest, knn_neighbours, knn_query, morton_order, radius_query
 from mi_partpm.kdtree.radius import group_lanes, packet_lanes
 from mi_partpm.photonmap import build_photon_maps
 from mi_partpm.trace import trace_photons
@@ -294,26 +294,82 @@ def _call(kind, forest, q, **kw):
     (lambda pts: knn_neighbours(build_forest(pts), pts[:5].T, 2),
      r"points must have shape \(N, 3\), got \(3, 5\)"),
     (lambda pts: _call("radius", build_forest(pts), pts[:5], r=-0.3),
-     r"r must be >= 0 \(inf for no bound\), got -0.3"),
+     r"r must be 0 or in \[1e-18, inf\] \(inf for no bound\), got -0.3"),
+    (lambda pts: _call("radius", build_forest(pts * 1e-18), pts[:5] * 1e-18, r=5e-20),
+     r"r must be 0 or in \[1e-18, inf\] \(inf for no bound\), got 5e-20"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:5], r="0.1"),
+     r"r must be a number or one per query point, got '0.1'"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:5], maps=2),
+     r"maps must be \(first, stop\) with 0 <= first <= stop <= map_count = 1, got 2"),
+    (lambda pts: build_forest(pts * 3e19),
+     r"photon positions must be finite with coordinates within \+-1e\+18"),
+    (lambda pts: knn_neighbours(build_forest(pts), np.array([[3e19, 0, 0]]), 2),
+     r"points must be finite with coordinates within \+-1e\+18"),
+    (lambda pts: morton_order(np.array([[np.inf, 0, 0], [1, 1, 1]])),
+     r"points must be finite with coordinates within"),
+    (lambda pts: build_forest(pts, np.r_[np.zeros(98, int), 10**7]),
+     r"map_ids must lie in \[0, 1048576\) \(a forest holds at most 1048576 maps\), got a "
+     r"maximum of 10000000"),
+    (lambda pts: build_forest(pts, mi.UInt32(np.r_[np.zeros(98), 2**32 - 1].astype(np.uint32))),
+     r"map_ids must lie in \[0, 1048576\)"),
+    (lambda pts: build_forest(pts, np.zeros(99, int), 4.0),
+     r"map_count must be an integer in \[1, 1048576\], got 4.0"),
+    (lambda pts: build_forest(pts, np.zeros(99, int), "4"),
+     r"map_count must be an integer in \[1, 1048576\], got '4'"),
+    (lambda pts: build_forest(pts, payload=mi.Float(np.ones(99))),
+     r"payload must be mi.UInt32 or integers of shape \(N,\), got Float"),
+    (lambda pts: build_forest(pts, payload=np.ones(99) / 2),
+     r"payload must be integers in \[0, 2\^32\), one per point"),
     (lambda pts: _call("radius", build_forest(pts), pts[:5], r=mi.Float([0.1, 0.2])),
      r"r has 2 entries for 5 query points"),
     (lambda pts: _call("knn", build_forest(pts), pts[:5], max_radius=mi.Float([0.1, -1, 0, 0,
                                                                                 0])),
-     r"max_radius must be >= 0"),
+     r"max_radius must be 0 or in \[1e-18, inf\]"),
     (lambda pts: _call("knn", build_forest(pts), pts[:5], active=mi.Bool([True, False])),
      r"active has 2 entries for 5 query points"),
     (lambda pts: _call("radius", build_forest(pts), np.array([[0, 0, np.nan]])),
-     r"p: every query point must be finite"),
+     r"p must be finite with coordinates within \+-1e\+18"),
     (lambda pts: knn_neighbours(build_forest(pts), np.array([[np.inf, 0, 0]]), 2),
-     r"points: every query point must be finite"),
+     r"points must be finite with coordinates within \+-1e\+18"),
 ])
 def test_bad_input_names_the_argument(make, message):
     """What scipy refuses (or what would pair the wrong numbers into points, walk the wrong
-    sides of the tree with a negative radius, or wrap map ids past 2^32) is a ValueError that
-    names the argument."""
+    sides of the tree with a negative radius, wrap map ids past 2^32, allocate a table per
+    map id up to a stray large one, or compare squared distances that overflow or leave
+    float32's normal range) is a ValueError that names the argument and what it may be."""
     pts = np.random.default_rng(0).random((99, 3))
     with pytest.raises(ValueError, match=message):
         make(pts)
+
+
+def test_a_forest_is_asked_for_by_name():
+    with pytest.raises(TypeError, match=r"forest must be a Forest \(made by build_forest\), "
+                                        r"got ndarray"):
+        radius_query(np.zeros((4, 3)), np.zeros((1, 3)), 0.1, lambda i, d2, a, s: mi.Float(1.0))
+    with pytest.raises(TypeError, match=r"forest must be a Forest"):
+        knn_query(np.zeros((4, 3)), np.zeros((1, 3)), 2)
+
+
+def test_payloads_as_integers_and_the_extremes_of_scale():
+    """A payload of NumPy integers is kept as a mi.UInt32 one is; the coordinates and radii
+    at the ends of the accepted range give scipy's answers (points up to 1e18 apart in
+    magnitude, a radius of 1e-18 among points 1e-17 apart); an empty forest has no points
+    and reports a radius of 0 (not inf) where it finds nothing without a cap."""
+    rng = np.random.default_rng(3)
+    pts = rng.random((300, 3))
+    codes = rng.integers(0, 1 << 31, 300).astype(np.uint32)
+    a, b = build_forest(pts, payload=codes), build_forest(pts, payload=mi.UInt32(codes))
+    np.testing.assert_array_equal(a.records.numpy(), b.records.numpy())
+    for scale, r in ((1e18 / 2, 1e17), (1e-17, 1e-18)):
+        p, q = pts * scale, rng.random((50, 3)) * scale
+        found = radius_query(build_forest(p), q, r, lambda i, d2, a, s: mi.Float(1.0)).numpy()
+        assert found.tolist() == cKDTree(p).query_ball_point(q, r, return_length=True).tolist()
+        d, i = knn_neighbours(build_forest(p), q, 3)
+        np.testing.assert_array_equal(i, cKDTree(p).query(q, 3)[1])
+    empty = build_forest(np.zeros((0, 3)))
+    assert empty.points.shape == (0, 3) and empty.order.shape == (0,)
+    assert knn_query(empty, np.zeros((2, 3)), 3).radius2.numpy().tolist() == [0, 0]
+    assert knn_query(empty, np.zeros((2, 3)), 3, max_radius=2).radius2.numpy().tolist() == [4, 4]
 
 
 def test_numpy_and_other_drjit_vectors_are_points_too():

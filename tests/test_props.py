@@ -16,6 +16,9 @@ from mi_partpm.trace import map_seeds, map_sizes
     ({"photon_count": 1.5}, r"photon_count must be an integer >= 1, got 1.5"),
     ({"map_count": 0}, r"map_count must be an integer in \[1, photon_count = 100000\], got 0"),
     ({"photon_count": 10, "map_count": 11}, r"map_count .* got 11"),
+    ({"photon_count": 10**8, "map_count": 2**21},
+     r"map_count must be an integer in \[1, 1048576\] \(the most maps a forest holds\), got "
+     r"2097152"),
     ({"radius": 0.0}, r"radius must be a finite number in \(0.0, 1e\+18\], got 0.0"),
     ({"radius": -1.0}, r"radius must be .* got -1.0"),
     ({"radius": math.inf}, r"radius must be .* got inf"),

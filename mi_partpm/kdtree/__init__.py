@@ -10,8 +10,8 @@ Both queries walk their query points in Morton order and answer in the caller's,
 photon they accept to a callback with its squared distance, so a density kernel is one function
 of the distance (:mod:`mi_partpm.estimate`).
 """
-from .forest import (LAYOUTS, LEAF_BOX_BYTES, LEAF_ENTRY_BYTES, LEAF_SIZE, NODE_BYTES,
-                     RECORD_FLOATS, Forest, build_forest, morton_codes, morton_order,
+from .forest import (LAYOUTS, LEAF_BOX_BYTES, LEAF_ENTRY_BYTES, LEAF_SIZE, MAX_COORD, MAX_MAPS,
+                     NODE_BYTES, RECORD_FLOATS, Forest, build_forest, morton_codes, morton_order,
                      rows_in_order, shared_leaf_size, tree_bytes, tree_depth)
 from .knn import KnnResult, knn_neighbours, knn_query
 from .radius import ORDERS, WALKS, QueryStats, photon_position, radius_query
@@ -20,4 +20,4 @@ __all__ = ["Forest", "build_forest", "morton_codes", "morton_order", "tree_bytes
            "tree_depth", "shared_leaf_size", "LAYOUTS", "LEAF_SIZE", "NODE_BYTES",
            "LEAF_ENTRY_BYTES", "LEAF_BOX_BYTES", "RECORD_FLOATS", "radius_query", "QueryStats",
            "photon_position", "ORDERS", "WALKS", "knn_query", "KnnResult", "knn_neighbours",
-           "rows_in_order"]
+           "rows_in_order", "MAX_MAPS", "MAX_COORD"]

@@ -44,7 +44,7 @@ import mitsuba as mi
 import numpy as np
 
 __all__ = ["Forest", "build_forest", "as_points", "shared_leaf_size", "morton_codes", "morton_order",
-           "tree_bytes", "tree_depth", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES",
+           "tree_bytes", "tree_depth", "check_coordinates", "MAX_MAPS", "MAX_COORD", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES",
            "LEAF_BOX_BYTES", "RECORD_FLOATS", "LAYOUTS", "rows_in_order"]
 
 #: Default most photons per leaf of a tree of one map (a shared tree's: :func:`shared_leaf_size`);
@@ -59,6 +59,13 @@ __all__ = ["Forest", "build_forest", "as_points", "shared_leaf_size", "morton_co
 #: in 0.16 / 0.13-0.15 / 0.11 / 0.11 s (a level fewer per doubling). ``partpm bench``
 #: measures the current value against scipy.
 LEAF_SIZE = 64
+
+#: The most maps a forest holds (its per-map tables are host arrays of one entry per map; the
+#: paper's PE array has at most 1024).
+MAX_MAPS = 1 << 20
+#: The largest magnitude of a coordinate, of a photon or a query point: distances are
+#: compared squared, in float32, and the square of a distance beyond 1.8 x 10^19 overflows.
+MAX_COORD = 1e18
 
 #: Bytes of one internal node: the split value (float32) and the split axis (uint32).
 NODE_BYTES = 8
@@ -221,7 +228,14 @@ class Forest:
         from entry ``base + j s + max(first, f) - f`` to the entry ``span`` = their count
         later. One array for every range: a device array per range, all kept, slowed every
         later Dr.Jit call down (per-map walks of 128 maps: 11 -> 57 ms each)."""
-        first, stop = (0, self.map_count) if maps is None else (int(maps[0]), int(maps[1]))
+        if maps is None:
+            first, stop = 0, self.map_count
+        else:
+            try:
+                first, stop = (int(v) for v in maps)
+            except (TypeError, ValueError):
+                raise ValueError(f"maps must be (first, stop) with 0 <= first <= stop <= "
+                                 f"map_count = {self.map_count}, got {maps!r}") from None
         if not 0 <= first <= stop <= self.map_count:
             raise ValueError(f"maps must be (first, stop) with 0 <= first <= stop <= "
                              f"map_count = {self.map_count}, got ({first}, {stop})")
@@ -240,7 +254,7 @@ class Forest:
     @property
     def points(self) -> np.ndarray:
         """(N, 3) float32 positions in tree order."""
-        return self.records.numpy().reshape(-1, RECORD_FLOATS)[:, :3]
+        return self.records.numpy().reshape(-1, RECORD_FLOATS)[: self.size, :3]
 
     @property
     def order(self) -> np.ndarray:
@@ -285,6 +299,19 @@ def as_points(points, name: str = "points") -> mi.Point3f:
     return mi.Point3f(*[np.ascontiguousarray(pts[:, a]) for a in range(3)])
 
 
+def check_coordinates(p, name: str, active=True):
+    """A ValueError naming ``name`` unless every ``active`` point of ``p`` is finite with
+    coordinates within +-:data:`MAX_COORD` (one reduction on the device)."""
+    if dr.width(p) == 0:
+        return
+    largest = dr.maximum(dr.maximum(dr.abs(p.x), dr.abs(p.y)), dr.abs(p.z))
+    ok = dr.isfinite(largest) & (largest <= MAX_COORD)
+    if not bool(dr.all(ok | ~mi.Bool(active))[0]):
+        raise ValueError(f"{name} must be finite with coordinates within +-{MAX_COORD:g} "
+                         f"(distances are compared squared in float32); NaN, inf or a larger "
+                         f"coordinate found")
+
+
 def _spread_bits(x):
     """The low 10 bits of ``x`` spread to every third bit (bit i to bit 3 i)."""
     x = (x | (x << 16)) & 0x030000FF
@@ -313,6 +340,7 @@ def morton_order(points) -> np.ndarray:
     p = as_points(points)
     if dr.width(p) == 0:
         return np.zeros(0, dtype=np.int64)
+    check_coordinates(p, "points")
     return dr.argsort(morton_codes(p)).numpy().astype(np.int64)
 
 
@@ -599,6 +627,29 @@ def _build_groups(p, ids, counts, starts, depth, node_base, nodes):
     return order
 
 
+def _as_payload(payload, n_points):
+    """``payload`` as ``mi.UInt32`` of one entry per point, or None: a ``mi.UInt32`` as it
+    is, integers of shape (N,) converted; anything else a ValueError naming ``payload``."""
+    if payload is None or isinstance(payload, mi.UInt32):
+        host = None
+    elif dr.is_array_v(payload):
+        raise ValueError(f"payload must be mi.UInt32 or integers of shape (N,), got "
+                         f"{type(payload).__name__} (reinterpret other 32-bit values with "
+                         f"dr.reinterpret_array)")
+    else:
+        host = np.asarray(payload)
+        if host.ndim != 1 or not (np.issubdtype(host.dtype, np.integer) or host.size == 0):
+            raise ValueError(f"payload must be integers in [0, 2^32), one per point (shape "
+                             f"(N,)); got dtype {host.dtype}, shape {host.shape}")
+        if host.size and (host.min() < 0 or host.max() > 0xFFFFFFFF):
+            raise ValueError(f"payload must be integers in [0, 2^32), got values from "
+                             f"{host.min()} to {host.max()}")
+        payload = mi.UInt32(host.astype(np.uint32))
+    if payload is not None and dr.width(payload) != n_points:
+        raise ValueError(f"payload has {dr.width(payload)} entries for {n_points} points")
+    return payload
+
+
 def _check_input(p, ids, map_count, leaf_size, layout):
     if layout not in LAYOUTS:
         raise ValueError(f"layout must be one of {', '.join(repr(v) for v in LAYOUTS)}, got "
@@ -610,10 +661,7 @@ def _check_input(p, ids, map_count, leaf_size, layout):
         raise ValueError(f"leaf_size must be an integer >= 1, got {leaf_size!r}")
     if n_points == 0:
         return
-    if map_count < 1:
-        raise ValueError(f"map_count must be >= 1, got {map_count}")
-    if not bool(dr.all(dr.isfinite(p.x) & dr.isfinite(p.y) & dr.isfinite(p.z))):
-        raise ValueError("photon positions must be finite")
+    check_coordinates(p, "photon positions")
 
 
 def build_forest(points, map_ids=None, map_count: int | None = None,
@@ -650,8 +698,9 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     Raises
     ------
     ValueError
-        Mismatched sizes, map ids out of range, a leaf size below 1, an unknown layout, or a
-        position that is not finite.
+        Mismatched sizes, map ids out of range, a map count outside [1, :data:`MAX_MAPS`], a
+        leaf size below 1, an unknown layout, a payload that is not 32-bit integers, or a
+        position that is not finite or has a coordinate beyond +-:data:`MAX_COORD`.
 
     Notes
     -----
@@ -664,6 +713,10 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     """
     p = as_points(points)
     n_points = dr.width(p)
+    if map_count is not None and (not isinstance(map_count, (int, np.integer))
+                                  or isinstance(map_count, bool)
+                                  or not 1 <= map_count <= MAX_MAPS):
+        raise ValueError(f"map_count must be an integer in [1, {MAX_MAPS}], got {map_count!r}")
     if map_ids is None:
         ids = dr.zeros(mi.UInt32, n_points)
     elif isinstance(map_ids, mi.UInt32):
@@ -679,10 +732,12 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
                              f"{host.min()} to {host.max()}")
         ids = mi.UInt32(host.astype(np.uint32))
     if map_count is None:
-        map_count = int(dr.max(ids)[0]) + 1 if n_points else 1
+        map_count = int(dr.max(ids)[0]) + 1 if n_points and dr.width(ids) == n_points else 1
+        if map_count > MAX_MAPS:
+            raise ValueError(f"map_ids must lie in [0, {MAX_MAPS}) (a forest holds at most "
+                             f"{MAX_MAPS} maps), got a maximum of {map_count - 1}")
     _check_input(p, ids, map_count, leaf_size, layout)
-    if payload is not None and dr.width(payload) != n_points:
-        raise ValueError(f"payload has {dr.width(payload)} entries for {n_points} points")
+    payload = _as_payload(payload, n_points)
     counts = np.zeros(map_count, dtype=np.int64)
     if n_points:
         largest = int(dr.max(ids)[0])

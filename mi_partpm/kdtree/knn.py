@@ -19,7 +19,7 @@ import mitsuba as mi
 import numpy as np
 
 from .forest import Forest, as_points
-from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, check_per_query,
+from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, check_forest, check_per_query,
                      check_queries, coordinate,
                      group_balls, group_lanes, leaf_reached, leaf_run, order_queries, permute,
                      photon_payload, photon_position, split_of, tree_row, unpermute,
@@ -157,6 +157,7 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     (below its cap) or more than :data:`KNN_KEEP` x k walks again on its own, so the
     neighbours are exact either way.
     """
+    check_forest(forest)
     if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or not 1 <= k <= MAX_K:
         raise ValueError(f"k must be an integer in [1, {MAX_K}], got {k!r} (a query keeps up "
                          f"to {KNN_KEEP} k candidates in a local array of at most 65536)")
@@ -180,7 +181,7 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         zeros = dr.zeros(mi.UInt32, width)
         stats = QueryStats(zeros, mi.UInt32(zeros), mi.UInt32(zeros)) if with_stats else None
         radius2 = dr.zeros(mi.Float, width)
-        if width:
+        if width and max_radius is not None:     # the cap, as when fewer than k are found
             radius2 = radius2 + r2max
         res = KnnResult(dr.zeros(result_type, width), radius2, mi.UInt32(zeros), stats)
         if neighbours:
@@ -535,7 +536,8 @@ def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
     to the caller's photon order (the ``points`` given to :func:`build_forest`); a missing
     neighbour (fewer than k within ``max_radius``) has distance ``inf`` and index N.
 
-    Differences from scipy: ``points`` must be finite (a ValueError otherwise); a neighbour
+    Differences from scipy: ``points`` must be finite, with coordinates within +-1e18 (a
+    ValueError otherwise: squared float32 distances overflow beyond); a neighbour
     at exactly ``max_radius`` counts (scipy's ``distance_upper_bound`` is strict); positions
     are float32, so points closer than float32 resolves (about 1e-7 of their magnitude)
     coincide. The k neighbours are k separate device arrays: their cost grows faster than k

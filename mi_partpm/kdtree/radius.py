@@ -29,7 +29,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .forest import RECORD_FLOATS, Forest, as_points, morton_codes
+from .forest import RECORD_FLOATS, Forest, as_points, check_coordinates, morton_codes
 
 __all__ = ["radius_query", "QueryStats", "order_queries", "group_balls", "group_lanes", "ORDERS",
            "WALKS"]
@@ -104,33 +104,47 @@ def check_queries(p, name: str = "p", active=True) -> mi.Point3f:
     :func:`~.forest.as_points`), every ``active`` one finite: a ValueError naming ``name``
     otherwise (an inactive lane may hold anything)."""
     p = as_points(p, name)
-    if dr.width(p) == 0:
-        return p
-    finite = dr.isfinite(p.x) & dr.isfinite(p.y) & dr.isfinite(p.z)
-    if not bool(dr.all(finite | ~mi.Bool(active))[0]):
-        raise ValueError(f"{name}: every query point must be finite (NaN or inf found)")
+    check_coordinates(p, name, active)
     return p
 
 
+#: The least nonzero radius: the square of a smaller one is below float32's normal range,
+#: where squared distances lose their precision (or flush to zero).
+MIN_RADIUS = 1e-18
+
+
 def check_per_query(value, name: str, width: int, radius: bool = True, active=True):
-    """A scalar or one value per query (``width``, or 1): a radius (``radius``: >= 0, inf
-    allowed, NaN not, in every ``active`` lane) or a mask. Raises a ValueError naming
-    ``name``."""
+    """A scalar or one value per query (``width``, or 1): a radius (``radius``: 0 or in
+    [:data:`MIN_RADIUS`, inf], NaN not, in every ``active`` lane) or a mask. Raises a
+    ValueError naming ``name``."""
+    bound = f"{name} must be 0 or in [{MIN_RADIUS:g}, inf] (inf for no bound)"
     if isinstance(value, (bool, int, float, np.integer, np.floating)):
-        if radius and not float(value) >= 0:
-            raise ValueError(f"{name} must be >= 0 (inf for no bound), got {value!r}")
+        if radius and not (float(value) == 0 or float(value) >= MIN_RADIUS):
+            raise ValueError(f"{bound}, got {value!r}")
         return value
     if not dr.is_array_v(value):             # NumPy arrays, lists
-        value = (mi.Float if radius else mi.Bool)(np.asarray(value).reshape(-1))
+        host = np.asarray(value)
+        if host.dtype.kind not in "biuf":
+            raise ValueError(f"{name} must be a number or one per query point, got "
+                             f"{value!r:.60}")
+        value = (mi.Float if radius else mi.Bool)(host.reshape(-1))
     n = dr.width(value)
     if n not in (1, width):
         raise ValueError(f"{name} has {n} entries for {width} query points (give one, or "
                          f"one per query)")
-    if radius and n and width and not bool(dr.all((mi.Float(value) >= 0)
-                                                  | ~mi.Bool(active))[0]):
-        raise ValueError(f"{name} must be >= 0 (inf for no bound) for every query; a "
-                         f"negative or NaN radius was given")
+    if radius and n and width:
+        r = mi.Float(value)
+        if not bool(dr.all((r == 0) | (r >= MIN_RADIUS) | ~mi.Bool(active))[0]):
+            raise ValueError(f"{bound} for every query; a negative, NaN or smaller radius "
+                             f"was given")
     return value
+
+
+def check_forest(forest):
+    """A TypeError unless ``forest`` is a :class:`~.forest.Forest`."""
+    if not isinstance(forest, Forest):
+        raise TypeError(f"forest must be a Forest (made by build_forest), got "
+                        f"{type(forest).__name__}")
 
 
 def order_queries(p, width: int, order: str):
@@ -299,6 +313,7 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     -------
     total, or (total, QueryStats), per query in the caller's order.
     """
+    check_forest(forest)
     result_type = mi.Float if result_type is None else result_type
     if walk not in WALKS:
         raise ValueError(f"walk must be one of {', '.join(repr(w) for w in WALKS)}, got "
