@@ -16,6 +16,7 @@ working ``mpiexec`` from PyPI, and a cluster's own MPI works the same.
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import sys
 import time
@@ -26,7 +27,8 @@ from pathlib import Path
 import drjit as dr
 import numpy as np
 
-__all__ = ["Backend", "LocalBackend", "MPIBackend", "make_backend", "BACKENDS", "comm_world",
+__all__ = ["launcher_ranks", "one_job",
+           "Backend", "LocalBackend", "MPIBackend", "make_backend", "BACKENDS", "comm_world",
            "owned_maps", "check_ranks", "allreduce_arrays", "abort_on_error",
            "share_cores", "find_mpiexec", "MPIUnavailable"]
 
@@ -101,6 +103,50 @@ def abort_on_error(comm):
         time.sleep(1.0)
         comm.Abort(1)
         raise
+
+
+#: Variables that MPI launchers set in every rank's environment, with the job's rank count
+#: (MPICH's and Intel MPI's Hydra, Open MPI's mpirun).
+LAUNCHER_SIZE_VARIABLES = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE")
+
+
+def launcher_ranks() -> int:
+    """The ranks of the MPI job this process was started in by mpiexec, from the launcher's
+    environment (1 when it was not: nothing is imported or initialised to find out)."""
+    import os
+    for name in LAUNCHER_SIZE_VARIABLES:
+        value = os.environ.get(name, "")
+        if value.isdigit():
+            return int(value)
+    return 1
+
+
+@contextmanager
+def one_job(comm, argv):
+    """Run a command on every rank of ``comm`` as one job: the ranks must have been given the
+    same arguments ``argv``, ranks other than 0 log only warnings, and an error on any rank,
+    before or during the render, ends the whole job with that rank's message (a rank that
+    just exited would leave the others waiting in their first collective call)."""
+    import logging
+    if comm.rank:
+        logging.getLogger().setLevel(logging.WARNING)
+    try:
+        first = comm.bcast(list(argv), root=0)
+        if list(argv) != first:
+            raise ValueError(f"the ranks of the MPI job were started with different arguments "
+                             f"(rank 0: {' '.join(first)}; rank {comm.rank}: {' '.join(argv)}): "
+                             f"start every rank with the same command")
+        yield
+    except Exception as e:   # noqa: BLE001  (any failure must end the job)
+        if comm.size == 1:
+            raise
+        last = str(e) if type(e).__name__ == "UsageError" else \
+            traceback.format_exception_only(type(e), e)[-1].strip()
+        print(f"partpm: error on MPI rank {comm.rank} of {comm.size}: {last}", file=sys.stderr,
+              flush=True)
+        time.sleep(1.0)
+        comm.Abort(2)
+        os._exit(2)              # where the abort returns before it ends this process
 
 
 def find_mpiexec() -> str:

@@ -125,6 +125,60 @@ def test_a_failing_rank_aborts_the_job_with_its_message():
     assert "finished" not in done.stdout
 
 
+def _mpmd(first, second, timeout=120):
+    """mpiexec with rank 0 running ``first`` and rank 1 ``second`` (each a list of the
+    command's arguments, optionally after an ``-env NAME VALUE`` of its own)."""
+    cmd = [find_mpiexec(), "-n", "1", *first, ":", "-n", "1", *second]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+
+
+CLI = [sys.executable, "-m", "mi_partpm.cli", "render", "cornell_box", "--maps", "2",
+       "--photons", "2000", "--spp", "1", "--backend", "mpi", "-q"]
+
+
+def test_a_rank_that_fails_before_the_render_aborts_the_job(tmp_path):
+    """A rank that cannot load the scene (its data folder is missing: a cluster node set up
+    differently) ends the job with its message; the other rank waited in its first
+    collective call for as long as the job ran before."""
+    args = [sys.executable, "-m", "mi_partpm.cli", "render", "happy_buddha", "--maps", "2",
+            "--photons", "2000", "--spp", "1", "--resolution", "8x8", "--backend", "mpi",
+            "-o", str(tmp_path / "x.exr")]
+    done = _mpmd(args, ["-env", "PARTPM_DATA", str(tmp_path / "missing"), *args])
+    assert done.returncode != 0
+    assert "error on MPI rank 1 of 2: data file 'happy_buddha_20k.ply' not found" in done.stderr
+
+
+def test_ranks_given_different_arguments_are_refused(tmp_path):
+    out = ["-o", str(tmp_path / "x.exr")]
+    done = _mpmd([*CLI, "--resolution", "8x8", *out], [*CLI, "--resolution", "12x12", *out])
+    assert done.returncode != 0
+    assert "the ranks of the MPI job were started with different arguments" in done.stderr
+    assert "--resolution 12x12" in done.stderr
+
+
+def test_mpiexec_with_the_local_backend_is_refused_and_one_rank_is_warned(tmp_path):
+    """Under mpiexec with the local backend every rank would render and write the whole
+    image; --backend mpi outside mpiexec is a job of one rank, which works but is said."""
+    done = _mpi(2, "-m", "mi_partpm.cli", "render", "cornell_box", "--photons", "2000",
+                "--resolution", "8x8", "--spp", "1", "-o", str(tmp_path / "x.exr"),
+                timeout=120)
+    assert done.returncode == 2
+    assert "one of the 2 ranks of an MPI job (mpiexec), but --backend is local" in done.stderr
+    assert not (tmp_path / "x.exr").exists()
+    done = subprocess.run([*CLI, "--resolution", "8x8", "-o", str(tmp_path / "y.exr")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "--backend mpi in an MPI job of one rank: start it with mpiexec -n P" in done.stderr
+
+
+def test_only_rank_0_reports_progress(tmp_path):
+    done = _mpi(2, "-m", "mi_partpm.cli", "render", "cornell_box", "--maps", "2", "--photons",
+                "2000", "--spp", "1", "--resolution", "8x8", "--passes", "2", "--backend", "mpi",
+                "-o", str(tmp_path / "x.exr"), timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stderr.count("pass 2 of 2:") == 1 and done.stderr.count("scene cornell_box") == 1
+
+
 def test_ranks_stop_after_the_same_pass_at_a_time_limit():
     done = _mpi(2, str(HERE / "mpi_scripts" / "late_rank.py"), timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]

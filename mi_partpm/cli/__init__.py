@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from contextlib import nullcontext
 
 from .common import UsageError, interrupted, parse_resolution
 from .experiments import (run_bench, run_calibrate, run_compare, run_converge, run_hwsim,
@@ -40,12 +41,38 @@ COMMANDS = {"render": run_render, "compare": run_compare, "speedup": run_speedup
             "converge": run_converge, "figures": run_figures, "calibrate": run_calibrate}
 
 
+def _as_one_job(args, argv):
+    """Where ``render`` runs as an MPI job (``--backend mpi``), its ranks run it as one job
+    (:func:`~mi_partpm.backends.one_job`); a render started by mpiexec on several ranks with
+    the local backend is refused (every rank would render and write the whole image)."""
+    from ..backends import MPIUnavailable, comm_world, launcher_ranks, one_job
+    if args.command != "render":
+        return nullcontext()
+    ranks = launcher_ranks()
+    if getattr(args, "backend", "local") != "mpi":
+        if ranks > 1:
+            raise UsageError(f"this process is one of the {ranks} ranks of an MPI job "
+                             f"(mpiexec), but --backend is local: every rank would render the "
+                             f"whole image and write it; pass --backend mpi")
+        return nullcontext()
+    if ranks == 1:
+        logging.getLogger(__name__).warning(
+            "--backend mpi in an MPI job of one rank: start it with mpiexec -n P to render on "
+            "P ranks")
+    try:
+        comm = comm_world()
+    except MPIUnavailable as e:
+        raise UsageError(str(e)) from None
+    return one_job(comm, argv)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING if getattr(args, "quiet", False) else logging.INFO,
                         format="%(message)s", stream=sys.stderr)
     try:
-        return COMMANDS[args.command](args)
+        with _as_one_job(args, sys.argv[1:] if argv is None else argv):
+            return COMMANDS[args.command](args)
     except UsageError as e:
         print(f"partpm: error: {e}", file=sys.stderr)
         return 2
