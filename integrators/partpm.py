@@ -11,9 +11,11 @@ from mi_partpm.estimate import gather_flux
 from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.gather import final_gather
 from mi_partpm.kdtree import MAX_MAPS
+from mi_partpm.kdtree.radius import MIN_RADIUS
 from mi_partpm.integrators.common import UNTIL_TIME_LIMIT, Layer, PhotonMapper, Term
 from mi_partpm.photonmap import fixed_radius
-from mi_partpm.progressive import RadianceSum, SPPMState, accumulate, radius_schedule
+from mi_partpm.progressive import (RadianceSum, SPPMState, accumulate, check_first_pass,
+                                   check_schedule, radius_schedule)
 from mi_partpm.trace import stream_seed
 from mi_partpm.props import (MAX_RADIUS, PROGRESSIVE_RADIUS_FRACTION, RADIUS_FRACTION,
                              read_choice, read_float, read_int)
@@ -30,8 +32,8 @@ def _read_radius_pair(props, radius_name: str, fraction_name: str):
     has_fraction = props is not None and fraction_name in props
     if has_radius and has_fraction:
         raise ValueError(f"give either {radius_name} or {fraction_name}, not both")
-    radius = read_float(props, radius_name, None, low=0.0, high=MAX_RADIUS) if has_radius \
-        else None
+    radius = read_float(props, radius_name, None, low=MIN_RADIUS, high=MAX_RADIUS,
+                        low_open=False) if has_radius else None
     fraction = read_float(props, fraction_name, None, low=0.0, high=1.0) \
         if has_fraction else None
     return radius, fraction
@@ -254,6 +256,11 @@ class PartPMIntegrator(PhotonMapper):
         gather, at the gather rays' hits), and the caustic maps' with their own radius."""
         terms = []
         by_name = {layer.name: layer for layer in layers}
+        progressive = self.passes > 1
+        if progressive:
+            check_first_pass(self.radius, self.alpha)
+            if self.final_gather and self.passes < UNTIL_TIME_LIMIT:
+                check_schedule(self.radius, self.alpha, self.passes)
         if self.final_gather:
             state = RadianceSum.start(width)
             terms.append(Term("global", state, lambda points, w: self._gather(
@@ -267,6 +274,13 @@ class PartPMIntegrator(PhotonMapper):
             else:
                 r = fixed_radius(scene, self.caustic_radius, self.caustic_radius_fraction
                                  or self.radius_fraction / 4)
+            if r < MIN_RADIUS:
+                raise ValueError(f"the caustic maps' radius, a quarter of radius = "
+                                 f"{self.params.radius:g}, is {r:.3g}: below {MIN_RADIUS:g}, the "
+                                 f"least radius whose square float32 compares (give "
+                                 f"caustic_radius)")
+            if progressive:
+                check_first_pass(r, self.alpha, "caustic maps' radius")
             self.stats["caustic_radius"] = r
             terms.append(self._points_term("caustic", by_name["caustic"], width, r))
         return terms
@@ -293,6 +307,8 @@ class PartPMIntegrator(PhotonMapper):
         schedule of a constant photon density: :func:`~mi_partpm.progressive.
         radius_schedule`)."""
         radius = radius_schedule(self.radius, self.alpha, pass_index)
+        if pass_index and radius < MIN_RADIUS:     # passes until a time limit
+            check_schedule(self.radius, self.alpha, pass_index + 1)
         p = self.params
         return final_gather(scene, maps, points, width, self.final_gather, radius,
                             seed=stream_seed(p.seed, 0, pass_index), max_depth=p.max_depth,

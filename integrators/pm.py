@@ -11,6 +11,7 @@ from mi_partpm.kdtree.knn import MAX_K
 from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.integrators.common import PhotonMapper, Term
 from mi_partpm.progressive import RadianceSum, accumulate
+from mi_partpm.kdtree.radius import MIN_RADIUS
 from mi_partpm.props import MAX_RADIUS, read_bool, read_float, read_int
 
 log = logging.getLogger("mi_partpm")
@@ -74,7 +75,8 @@ class PMIntegrator(PhotonMapper):
                           f"in [2, {MAX_K}] (the most the kNN query keeps)")
         self.count_kth = read_bool(props, "count_kth", True)
         has_cap = props is not None and "max_radius" in props
-        self.max_radius = read_float(props, "max_radius", None, low=0.0, high=MAX_RADIUS) \
+        self.max_radius = read_float(props, "max_radius", None, low=MIN_RADIUS, high=MAX_RADIUS,
+                                     low_open=False) \
             if has_cap else None
         self._acc = None
 

@@ -14,7 +14,7 @@ import mitsuba as mi
 import numpy as np
 
 from .kdtree import LEAF_SIZE, RECORD_FLOATS, Forest, build_forest, tree_bytes
-from .kdtree.radius import photon_payload
+from .kdtree.radius import MIN_RADIUS, photon_payload
 from .photons import Photons, decode_direction, gather_each, spectrum_channels
 
 __all__ = ["PhotonMaps", "build_photon_maps", "fixed_radius", "record_bytes", "map_bytes",
@@ -174,4 +174,9 @@ def fixed_radius(scene: mi.Scene, radius, radius_fraction: float) -> float:
     longest = float(dr.max(mi.ScalarVector3f(extent)))
     if not longest > 0:
         raise ValueError("the scene's bounding box is empty: give radius explicitly")
+    if radius_fraction * longest < MIN_RADIUS:
+        raise ValueError(f"the radius, a fraction {radius_fraction:g} of the scene's size "
+                         f"{longest:g}, is {radius_fraction * longest:.3g}: below "
+                         f"{MIN_RADIUS:g}, the least radius whose square float32 compares "
+                         f"(raise radius_fraction or give radius)")
     return radius_fraction * longest

@@ -24,7 +24,10 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-__all__ = ["SPPMState", "sppm_update", "accumulate", "RadianceSum", "radius_schedule"]
+from .kdtree.radius import MIN_RADIUS
+
+__all__ = ["SPPMState", "sppm_update", "accumulate", "RadianceSum", "radius_schedule",
+           "check_first_pass", "check_schedule"]
 
 
 def sppm_update(N, tau, r2, flux, found, alpha: float):
@@ -127,3 +130,26 @@ def radius_schedule(radius: float, alpha: float, pass_index: int) -> float:
     for j in range(pass_index):
         r2 *= alpha * (j + 1) / (alpha * j + 1)
     return r2 ** 0.5
+
+
+def check_first_pass(radius: float, alpha: float, name: str = "radius"):
+    """A ValueError naming ``alpha`` and ``name`` where a progressive render's radius would
+    fall below :data:`~mi_partpm.kdtree.radius.MIN_RADIUS` in its first pass: an eye path
+    that finds photons keeps ``alpha`` of them, and its r^2 shrinks by ``alpha`` then."""
+    if float(radius) * float(alpha) ** 0.5 < MIN_RADIUS:
+        raise ValueError(f"alpha = {alpha:g} shrinks the {name} {radius:g} to "
+                         f"{radius * alpha ** 0.5:.3g} in the first pass, below {MIN_RADIUS:g} "
+                         f"(the least radius whose square float32 compares): raise alpha "
+                         f"(SPPM uses 2/3) or the {name}")
+
+
+def check_schedule(radius: float, alpha: float, passes: int):
+    """A ValueError naming ``alpha`` where :func:`radius_schedule` falls below
+    :data:`~mi_partpm.kdtree.radius.MIN_RADIUS` within ``passes`` passes (the final gather's
+    radius: a small alpha shrinks it by about alpha times the pass count each pass)."""
+    end = radius_schedule(radius, alpha, passes - 1)
+    if end < MIN_RADIUS:
+        raise ValueError(f"alpha = {alpha:g} shrinks the final gather's radius {radius:g} to "
+                         f"{end:.3g} by pass {passes}, below {MIN_RADIUS:g} (the least radius "
+                         f"whose square float32 compares): raise alpha (SPPM uses 2/3) or "
+                         f"use fewer passes")

@@ -170,7 +170,9 @@ def read_photon_map_params(props, fixed_radius: bool = True) -> PhotonMapParams:
     if has_radius and has_fraction:
         raise ValueError("give either radius or radius_fraction, not both")
     if has_radius:
-        p.radius = read_float(props, "radius", None, low=0.0, high=MAX_RADIUS)
+        from .kdtree.radius import MIN_RADIUS    # the least radius the queries compare
+        p.radius = read_float(props, "radius", None, low=MIN_RADIUS, high=MAX_RADIUS,
+                              low_open=False)
     else:
         if has_fraction:
             p.radius_fraction = read_float(props, "radius_fraction", None, low=0.0, high=1.0)
