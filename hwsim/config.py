@@ -245,6 +245,10 @@ class HardwareConfig:
         _check_number("", "clock_hz", self.clock_hz)
         for name in CYCLE_KEYS:
             _check_number("", name, getattr(self, name), 0, low_open=False)
+        if self.pe.costs != "fitted" and not (self.cycles_per_node or self.cycles_per_test
+                                              or self.cycles_per_accumulate):
+            raise ValueError("cycles_per_node, cycles_per_test and cycles_per_accumulate are "
+                             "all 0: a query would take no time; set at least one > 0")
         _check_number("", "outstanding_queries", self.outstanding_queries, 1, low_open=False,
                       integer=True)
         _check_number("", "bytes_per_result", self.bytes_per_result, integer=True)

@@ -163,6 +163,9 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
     say(f"{meta.get('scene', workload_dir)}: n = {', '.join(map(str, sorted(loads)))}, "
         f"{meta['queries']} queries per map")
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"the output folder {out} is a file: the report writes a folder of "
+                         f"files")
     out.mkdir(parents=True, exist_ok=True)
     rows, detail = _per_n(config, loads)
     n_max = max(loads)

@@ -79,8 +79,10 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
     d = Path(directory)
     meta_path = d / "meta.json"
     if not meta_path.is_file():
+        hint = f" (it has one: {d / 'workloads'})" if (d / "workloads" / "meta.json").is_file() \
+            else ""
         raise ValueError(f"{meta_path} is missing: is {d} a workloads directory written by "
-                         f"'partpm speedup'?")
+                         f"'partpm speedup'? It is the speedup run's workloads/ folder{hint}")
     meta = json.loads(meta_path.read_text())
     if meta.get("version") not in READS_VERSIONS:
         raise ValueError(f"{meta_path}: format version {meta.get('version')!r}, this hwsim "

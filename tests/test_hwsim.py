@@ -255,6 +255,9 @@ def test_energy_by_hand():
     ({"gather": {"topology": "mesh"}}, r"gather.topology must be one of bus, tree, ring"),
     ({"memory": {"dram_bytes_per_cycle": 0}}, r"memory.dram_bytes_per_cycle must be"),
     ({"cycles_per_node": float("nan")}, r"cycles_per_node must be a finite number"),
+    ({"cycles_per_node": 0, "cycles_per_test": 0, "cycles_per_accumulate": 0},
+     r"cycles_per_node, cycles_per_test and cycles_per_accumulate are all 0: a query would "
+     r"take no time"),
     ({"memory": {"dram_channels": -1}}, r"memory.dram_channels must be an integer >= 0"),
     ({"energy": {"pj_per_node": -1}}, r"energy.pj_per_node must be a finite number >= 0"),
 ])
@@ -815,6 +818,17 @@ def test_hwsim_cli_refuses_pe_count_and_a_missing_check_before_any_work(tmp_path
                  str(tmp_path / "b")]) == 2
     assert "holds neither sets.json" in capsys.readouterr().err
     assert not (tmp_path / "b").exists()
+
+
+def test_hwsim_cli_points_at_the_workloads_folder_and_refuses_a_file_as_out(tmp_path, capsys):
+    from mi_partpm.cli import main
+    _synthetic_dir(tmp_path)                       # tmp_path/workloads: the speedup run's
+    assert main(["hwsim", str(tmp_path), "--out", str(tmp_path / "a")]) == 2
+    assert f"(it has one: {tmp_path / 'workloads'})" in capsys.readouterr().err
+    taken = tmp_path / "taken"
+    taken.write_text("")
+    assert main(["hwsim", str(tmp_path / "workloads"), "--out", str(taken)]) == 2
+    assert f"the output folder {taken} is a file" in capsys.readouterr().err
 
 
 def test_integer_keys_given_as_whole_floats_are_integers(tmp_path):

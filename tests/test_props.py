@@ -151,6 +151,21 @@ def test_cli_scene_without_emitter(tmp_path, capsys):
     assert "no emitter" in capsys.readouterr().err
 
 
+def test_a_bad_prop_in_a_scene_file_is_one_line(tmp_path, capsys):
+    """Mitsuba reports a plugin that raised while the scene loaded with its Python
+    traceback: the command line gives where in the file and the plugin's message alone."""
+    xml = tmp_path / "bad.xml"
+    xml.write_text('<scene version="3.0.0"><integrator type="partpm"><integer name="passes" '
+                   'value="0"/></integrator><shape type="sphere"><emitter type="area"/>'
+                   '</shape></scene>')
+    assert main(["render", str(xml), "-o", str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0], err
+    assert err[0].endswith('failed to instantiate integrator plugin of type "partpm": passes '
+                           'must be an integer >= 1, got 0'), err
+    assert "(line 1, col" in err[0]
+
+
 def test_cli_quality_options_reach_the_integrator(tmp_path):
     """--kernel, --caustic-photons, --caustic-radius-fraction, --glossy, --glossy-samples and
     --final-gather become the plugin's props, and a render with them traces the caustic maps
@@ -185,6 +200,8 @@ def test_cli_quality_options_reach_the_integrator(tmp_path):
       "0.1"], "--photons, --maps, --direct, --radius apply to the photon mappers "
               "(--integrator partpm or pm), not to path"),
     (["--integrator", "path", "--k", "5"], "--k applies to the photon mappers"),
+    (["--k", "5"], "--k applies to --integrator pm only"),
+    (["--k", "5", "--max-radius", "0.1"], "--k and --max-radius apply to --integrator pm only"),
 ])
 def test_cli_quality_options_name_the_integrators_they_apply_to(argv, message, capsys):
     assert main(["render", "cornell_box", *argv, "-o", "x.exr"]) == 2

@@ -139,7 +139,9 @@ def _experiment_options(sub):
                                         "Mitsuba's path against a path-traced reference")
     v.add_argument("scene", help="built-in scene name or Mitsuba XML file")
     v.add_argument("--time", type=positive_float("--time"), default=25.0,
-                   help="seconds each method may take (default 25)")
+                   help="the longest render of each method's curve: renders at doubling "
+                        "sizes until one takes longer than this (so the last one, and the "
+                        "run, take more; default 25)")
     v.add_argument("--resolution", type=parse_resolution, default=(160, 160),
                    help="film size WxH (default 160x160)")
     v.add_argument("--spp", type=positive_int("--spp"), default=4,

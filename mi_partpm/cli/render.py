@@ -89,8 +89,11 @@ def integrator_desc(args) -> dict:
         if args.max_radius is not None:
             desc["max_radius"] = args.max_radius
     elif args.integrator == "partpm":
-        if args.k is not None or args.max_radius is not None:
-            raise UsageError("--k and --max-radius apply to --integrator pm only")
+        given = [o for o, v in (("--k", args.k), ("--max-radius", args.max_radius))
+                 if v is not None]
+        if given:
+            raise UsageError(f"{' and '.join(given)} appl{'ies' if len(given) == 1 else 'y'} "
+                             f"to --integrator pm only")
         desc["map_count"] = args.maps or 8
         desc["backend"] = args.backend
         for key, value in (("passes", args.passes), ("alpha", args.alpha),

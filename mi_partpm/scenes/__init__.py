@@ -18,6 +18,7 @@ filled in from the package's data (or ``data_dir`` / ``$PARTPM_DATA``) unless gi
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 from typing import Optional, Tuple
 
@@ -109,7 +110,20 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
     try:
         return mi.load_file(str(path), **{k: str(v) for k, v in params.items()})
     except RuntimeError as e:
-        raise ValueError(f"could not load scene {str(path)!r}: {e}") from None
+        raise ValueError(f"could not load scene {str(path)!r}: {_loader_message(str(e))}") \
+            from None
+
+
+def _loader_message(text: str) -> str:
+    """Mitsuba's message of a scene that did not load, in one line: where in the file, and
+    the last line of a plugin's Python traceback (a bad prop of ours) without the traceback
+    and without the parser's source location."""
+    text = re.sub(r"^\[[\w.]+:\d+\]\s*", "", text.strip())
+    head, marker, tail = text.partition("Traceback (most recent call last):")
+    if marker and tail.strip():
+        last = tail.strip().splitlines()[-1]
+        text = head.rstrip() + " " + re.sub(r"^(?:\w+\.)*\w*(?:Error|Exception): ", "", last)
+    return " ".join(text.split())
 
 
 def scene_bounds(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
