@@ -11,7 +11,7 @@ from mi_partpm.estimate import gather_flux
 from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.gather import final_gather
 from mi_partpm.kdtree import MAX_MAPS
-from mi_partpm.kdtree.radius import MIN_RADIUS
+from mi_partpm.kdtree.radius import MIN_RADIUS, below_min_radius
 from mi_partpm.integrators.common import UNTIL_TIME_LIMIT, Layer, PhotonMapper, Term
 from mi_partpm.photonmap import fixed_radius
 from mi_partpm.progressive import (RadianceSum, SPPMState, accumulate, check_first_pass,
@@ -271,14 +271,17 @@ class PartPMIntegrator(PhotonMapper):
             if self.caustic_radius is None and self.caustic_radius_fraction is None and \
                     self.params.radius is not None:
                 r = self.params.radius / 4          # a quarter of the global radius given
+            elif self.caustic_radius_fraction is not None:
+                r = fixed_radius(scene, self.caustic_radius, self.caustic_radius_fraction,
+                                 ("caustic_radius", "caustic_radius_fraction"))
             else:
-                r = fixed_radius(scene, self.caustic_radius, self.caustic_radius_fraction
-                                 or self.radius_fraction / 4)
+                r = fixed_radius(scene, self.caustic_radius, self.radius_fraction / 4,
+                                 ("caustic_radius", "radius_fraction"),
+                                 f"a quarter of radius_fraction = {self.radius_fraction:g}")
             if r < MIN_RADIUS:
                 raise ValueError(f"the caustic maps' radius, a quarter of radius = "
-                                 f"{self.params.radius:g}, is {r:.3g}: below {MIN_RADIUS:g}, the "
-                                 f"least radius whose square float32 compares (give "
-                                 f"caustic_radius)")
+                                 f"{self.params.radius:g}, is {r:.3g}: {below_min_radius()} "
+                                 f"(give caustic_radius)")
             if progressive:
                 check_first_pass(r, self.alpha, "caustic maps' radius")
             self.stats["caustic_radius"] = r

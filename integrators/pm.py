@@ -113,7 +113,8 @@ class PMIntegrator(PhotonMapper):
         est = knn_flux(maps, points.si, points.bsdf, self.k, self.max_radius,
                        max_bounce=points.max_bounce, kernel=self.params.kernel,
                        lobes=estimated_lobes(self.params.glossy), count_kth=self.count_kth)
-        counted = dr.isfinite(est.radius2)
+        # An empty map finds nothing at radius 0 (no cap): not an estimate of any radius.
+        counted = dr.isfinite(est.radius2) & ((est.found > 0) | (est.radius2 > 0))
         dr.scatter_reduce(dr.ReduceOp.Add, self._acc, dr.sqrt(est.radius2), 0, counted)
         dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 1, counted)
         dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 2, counted & (est.found < self.k))

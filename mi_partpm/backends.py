@@ -27,7 +27,7 @@ from pathlib import Path
 import drjit as dr
 import numpy as np
 
-__all__ = ["launcher_ranks", "one_job",
+__all__ = ["launcher_ranks", "run_as_one_job", "abort_job",
            "Backend", "LocalBackend", "MPIBackend", "make_backend", "BACKENDS", "comm_world",
            "owned_maps", "check_ranks", "allreduce_arrays", "abort_on_error",
            "share_cores", "find_mpiexec", "MPIUnavailable"]
@@ -61,9 +61,6 @@ def share_cores(comm) -> int:
     2: with a pool of one thread (Dr.Jit 1.5), writing a ``mi.Bitmap`` deadlocks. Returns the
     thread count set (left alone when ``DRJIT_NUM_THREADS`` is set).
     """
-    import os
-
-    import drjit as dr
     from mpi4py import MPI
     if os.environ.get("DRJIT_NUM_THREADS"):
         return dr.thread_count()
@@ -87,6 +84,23 @@ def owned_maps(rank: int, ranks: int, map_count: int) -> np.ndarray:
     return np.arange(rank, map_count, ranks, dtype=np.int64)
 
 
+def abort_job(comm, message, code: int = 1):
+    """End the whole MPI job from this rank: print ``message`` (None: the rank printed its
+    own), give mpiexec a moment to forward it, abort, and exit (where the abort returns
+    before it ends this process)."""
+    if message:
+        print(f"partpm: error on MPI rank {comm.rank} of {comm.size}: {message}",
+              file=sys.stderr, flush=True)
+    time.sleep(1.0)
+    comm.Abort(code)
+    os._exit(code)
+
+
+def _message(e: BaseException) -> str:
+    return str(e) if type(e).__name__ == "UsageError" else \
+        traceback.format_exception_only(type(e), e)[-1].strip()
+
+
 @contextmanager
 def abort_on_error(comm):
     """Turn an exception on one rank into an abort of the whole job with that rank's message.
@@ -96,13 +110,7 @@ def abort_on_error(comm):
     try:
         yield
     except Exception as e:   # noqa: BLE001  (any failure must end the job)
-        last = traceback.format_exception_only(type(e), e)[-1].strip()
-        print(f"partpm: error on MPI rank {comm.rank} of {comm.size}: {last}", file=sys.stderr,
-              flush=True)
-        # Give mpiexec a moment to forward the message before the abort tears the job down.
-        time.sleep(1.0)
-        comm.Abort(1)
-        raise
+        abort_job(comm, _message(e), 1)
 
 
 #: Variables that MPI launchers set in every rank's environment, with the job's rank count
@@ -113,7 +121,6 @@ LAUNCHER_SIZE_VARIABLES = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE")
 def launcher_ranks() -> int:
     """The ranks of the MPI job this process was started in by mpiexec, from the launcher's
     environment (1 when it was not: nothing is imported or initialised to find out)."""
-    import os
     for name in LAUNCHER_SIZE_VARIABLES:
         value = os.environ.get(name, "")
         if value.isdigit():
@@ -121,32 +128,26 @@ def launcher_ranks() -> int:
     return 1
 
 
-@contextmanager
-def one_job(comm, argv):
-    """Run a command on every rank of ``comm`` as one job: the ranks must have been given the
-    same arguments ``argv``, ranks other than 0 log only warnings, and an error on any rank,
-    before or during the render, ends the whole job with that rank's message (a rank that
-    just exited would leave the others waiting in their first collective call)."""
-    import logging
-    if comm.rank:
-        logging.getLogger().setLevel(logging.WARNING)
+def run_as_one_job(comm, argv, run) -> int:
+    """Run a command (``run()``, which returns its exit status) on every rank of ``comm`` as
+    one job: the ranks must have been given the same arguments ``argv``, and a rank that
+    fails, before or during the render (an error, or a status other than 0), ends the whole
+    job (a rank that just exited would leave the others waiting in their next collective
+    call)."""
     try:
         first = comm.bcast(list(argv), root=0)
         if list(argv) != first:
             raise ValueError(f"the ranks of the MPI job were started with different arguments "
                              f"(rank 0: {' '.join(first)}; rank {comm.rank}: {' '.join(argv)}): "
                              f"start every rank with the same command")
-        yield
+        code = run()
+    except SystemExit as e:      # argparse has printed its message
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
     except Exception as e:   # noqa: BLE001  (any failure must end the job)
-        if comm.size == 1:
-            raise
-        last = str(e) if type(e).__name__ == "UsageError" else \
-            traceback.format_exception_only(type(e), e)[-1].strip()
-        print(f"partpm: error on MPI rank {comm.rank} of {comm.size}: {last}", file=sys.stderr,
-              flush=True)
-        time.sleep(1.0)
-        comm.Abort(2)
-        os._exit(2)              # where the abort returns before it ends this process
+        abort_job(comm, _message(e), 2)
+    if code:
+        abort_job(comm, None, code)         # the rank has said why
+    return 0
 
 
 def find_mpiexec() -> str:

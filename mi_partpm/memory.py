@@ -30,10 +30,10 @@ __all__ = ["available_bytes", "peak_rss_bytes", "MemoryEstimate", "estimate_rend
 TRACE_BATCH = 1 << 20
 #: Bytes of one trace batch's buffers and state beyond the photons it returns (the stored
 #: photons' 32-byte slots, about 3.75 per path, the order that puts them in photon order,
-#: the copy it reads them into, and the joining of the pilot batch's photons to the
-#: batch's), whatever the photon count. Measured: Dr.Jit's peak over a trace of 2^20 paths
-#: in the Cornell box (a pilot batch and a full one) less the photons returned, 283 bytes
-#: per path (198 without the pilot's joining).
+#: and the copy it reads them into), whatever the photon count. Measured: Dr.Jit's peak over
+#: a trace of 2^20 paths in the Cornell box less the photons returned, 283 bytes per path
+#: when a pilot batch's photons were joined to the full batch's, 198 without that joining
+#: (the pilot's photons are now traced again instead, so the estimate keeps the margin).
 TRACE_BATCH_BYTES = 300 * TRACE_BATCH
 #: Peak bytes per stored photon of a wave while it is traced, built and queried: the photons
 #: as traced (position, direction, power, map, bounce), the tree build's sort orders and

@@ -14,7 +14,7 @@ import mitsuba as mi
 import numpy as np
 
 from .kdtree import LEAF_SIZE, RECORD_FLOATS, Forest, build_forest, tree_bytes
-from .kdtree.radius import MIN_RADIUS, photon_payload
+from .kdtree.radius import MIN_RADIUS, below_min_radius, photon_payload
 from .photons import Photons, decode_direction, gather_each, spectrum_channels
 
 __all__ = ["PhotonMaps", "build_photon_maps", "fixed_radius", "record_bytes", "map_bytes",
@@ -164,9 +164,12 @@ def build_photon_maps(photons: Photons, leaf_size: int = LEAF_SIZE,
     return PhotonMaps(forest=forest, power=power, emitted=photons.emitted, bounce=bounce)
 
 
-def fixed_radius(scene: mi.Scene, radius, radius_fraction: float) -> float:
+def fixed_radius(scene: mi.Scene, radius, radius_fraction: float,
+                 names=("radius", "radius_fraction"), source: str = None) -> float:
     """The fixed radius: ``radius`` if given, else a fraction of the longest side of the
-    shapes' bounding box (:func:`~mi_partpm.scenes.scene_bounds`)."""
+    shapes' bounding box (:func:`~mi_partpm.scenes.scene_bounds`). ``names``, the props of
+    the radius and of the fraction, and ``source``, where the fraction came from (default:
+    the fraction prop), name them in the message that refuses a radius below the least."""
     from .scenes import scene_bounds
     if radius is not None:
         return float(radius)
@@ -175,8 +178,8 @@ def fixed_radius(scene: mi.Scene, radius, radius_fraction: float) -> float:
     if not longest > 0:
         raise ValueError("the scene's bounding box is empty: give radius explicitly")
     if radius_fraction * longest < MIN_RADIUS:
-        raise ValueError(f"the radius, a fraction {radius_fraction:g} of the scene's size "
-                         f"{longest:g}, is {radius_fraction * longest:.3g}: below "
-                         f"{MIN_RADIUS:g}, the least radius whose square float32 compares "
-                         f"(raise radius_fraction or give radius)")
+        source = source or f"{names[1]} = {radius_fraction:g}"
+        raise ValueError(f"the {names[0]}, {source} of the scene's size {longest:g}, is "
+                         f"{radius_fraction * longest:.3g}: {below_min_radius()} (raise "
+                         f"{names[1]} or give {names[0]})")
     return radius_fraction * longest

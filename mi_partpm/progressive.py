@@ -19,12 +19,13 @@ ranks before the update.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 
-from .kdtree.radius import MIN_RADIUS
+from .kdtree.radius import MIN_RADIUS, below_min_radius
 
 __all__ = ["SPPMState", "sppm_update", "accumulate", "RadianceSum", "radius_schedule",
            "check_first_pass", "check_schedule"]
@@ -138,18 +139,20 @@ def check_first_pass(radius: float, alpha: float, name: str = "radius"):
     that finds photons keeps ``alpha`` of them, and its r^2 shrinks by ``alpha`` then."""
     if float(radius) * float(alpha) ** 0.5 < MIN_RADIUS:
         raise ValueError(f"alpha = {alpha:g} shrinks the {name} {radius:g} to "
-                         f"{radius * alpha ** 0.5:.3g} in the first pass, below {MIN_RADIUS:g} "
-                         f"(the least radius whose square float32 compares): raise alpha "
-                         f"(SPPM uses 2/3) or the {name}")
+                         f"{radius * alpha ** 0.5:.3g} in the first pass, {below_min_radius()}: "
+                         f"raise alpha (SPPM uses 2/3) or the {name}")
 
 
 def check_schedule(radius: float, alpha: float, passes: int):
     """A ValueError naming ``alpha`` where :func:`radius_schedule` falls below
     :data:`~mi_partpm.kdtree.radius.MIN_RADIUS` within ``passes`` passes (the final gather's
-    radius: a small alpha shrinks it by about alpha times the pass count each pass)."""
-    end = radius_schedule(radius, alpha, passes - 1)
-    if end < MIN_RADIUS:
+    radius: a small alpha shrinks it by about alpha times the pass count each pass). The
+    schedule's product is r_i^2 = r_0^2 Gamma(i + 1) Gamma(1/alpha) / Gamma(i + 1/alpha),
+    evaluated in logarithms: no loop over the passes."""
+    i = passes - 1
+    log_r2 = 2 * math.log(radius) + math.lgamma(i + 1) + math.lgamma(1 / alpha) - \
+        math.lgamma(i + 1 / alpha)
+    if log_r2 < 2 * math.log(MIN_RADIUS):
         raise ValueError(f"alpha = {alpha:g} shrinks the final gather's radius {radius:g} to "
-                         f"{end:.3g} by pass {passes}, below {MIN_RADIUS:g} (the least radius "
-                         f"whose square float32 compares): raise alpha (SPPM uses 2/3) or "
-                         f"use fewer passes")
+                         f"{math.exp(log_r2 / 2):.3g} by pass {passes}, {below_min_radius()}: "
+                         f"raise alpha (SPPM uses 2/3) or use fewer passes")

@@ -195,10 +195,10 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         Receives a line per batch.
     batch_size : int
         Photon paths traced together at most; more run in batches (same photons). A run
-        of more paths than a pilot (``batch_size // 16`` paths, at least 1024, at most
-        8192 and ``batch_size``) traces a pilot first that measures how many photons a
-        path stores, so that the batches size their buffers; the first batch traces the
-        pilot's paths again and keeps them.
+        of more than ``batch_size // 16`` paths (at least 1024) traces a pilot of at most
+        8192 of them first, which measures how many photons a path stores, so that the
+        batches size their buffers; the first batch traces the pilot's paths again and
+        keeps them.
     memory_check : callable(stored_per_emitted, traced), optional
         Called after the pilot and after each batch but the last with the measured photons
         stored per photon emitted and the photons traced for it; it may raise to stop
@@ -230,14 +230,20 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
                min_bounce, PATHS.index(paths), caustic_through == "glossy",
                caustic_past_landings, maps, sizes[maps])
-    # A pilot of a few thousand paths measures the photons stored per path before the
-    # batches size their buffers: a buffer too small for a batch means tracing that batch
-    # again (a scene of white walls stores 7 photons per path, the Cornell box 3). The
-    # pilot's photons are traced again by the first batch, so that a run of one batch
-    # hands its photons over as they come, with no copy into a run of several batches.
-    pilot = min(batch_size, max(PILOT_MIN, min(PILOT_MAX, batch_size // PILOT_SHARE)))
+    if n_lanes > 0xFFFFFFFF:
+        raise ValueError(f"a tracing run has at most 2^32 - 1 photons, got {n_lanes} (trace "
+                         f"the maps in several runs: maps=...)")
+    # A run of up to ``batch_size // PILOT_SHARE`` paths is one batch with room for
+    # PILOT_GUESS photons per path. A longer run traces a pilot of a few thousand paths
+    # first, which measures the photons stored per path before the batches size their
+    # buffers: a buffer too small for a batch means tracing that batch again (a scene of
+    # white walls stores 7 photons per path, the Cornell box 3). The pilot's photons are
+    # traced again by the first batch, so that a run of one batch hands its photons over as
+    # they come, with no copy into a run of several batches.
+    direct = min(batch_size, max(PILOT_MIN, batch_size // PILOT_SHARE))
+    pilot = min(direct, PILOT_MAX)
     per_lane = float(min(max_depth, PILOT_GUESS))
-    if n_lanes > pilot:
+    if n_lanes > direct:
         stored, _ = run.batch(0, pilot, per_lane, keep=False)
         per_lane = max(stored / pilot, 0.05)
         if memory_check is not None:
@@ -261,10 +267,10 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     return photons
 
 
-#: The pilot: ``batch_size // PILOT_SHARE`` paths, at least ``PILOT_MIN`` and at most
-#: ``PILOT_MAX`` (and ``batch_size``), with room for ``PILOT_GUESS`` stored photons per path
-#: (6 MB of slots and bounce words for 2^13 paths). A run of no more paths than that is
-#: traced in one batch of that room, without a pilot.
+#: A run of at most ``batch_size // PILOT_SHARE`` paths (at least ``PILOT_MIN``) is traced
+#: in one batch with room for ``PILOT_GUESS`` stored photons per path (47 MB of slots and
+#: bounce words for the 2^16 paths of the default batch size); a longer one measures a pilot
+#: of at most ``PILOT_MAX`` of its paths first (6 MB for 2^13).
 PILOT_SHARE, PILOT_MIN, PILOT_MAX, PILOT_GUESS = 16, 1024, 1 << 13, 16
 
 

@@ -163,12 +163,44 @@ def test_mpiexec_with_the_local_backend_is_refused_and_one_rank_is_warned(tmp_pa
                 "--resolution", "8x8", "--spp", "1", "-o", str(tmp_path / "x.exr"),
                 timeout=120)
     assert done.returncode == 2
-    assert "one of the 2 ranks of an MPI job (mpiexec), but --backend is local" in done.stderr
+    assert "one of the 2 ranks of an MPI job (mpiexec), but the integrator (partpm) renders " \
+        "locally" in done.stderr
     assert not (tmp_path / "x.exr").exists()
     done = subprocess.run([*CLI, "--resolution", "8x8", "-o", str(tmp_path / "y.exr")],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "--backend mpi in an MPI job of one rank: start it with mpiexec -n P" in done.stderr
+
+
+def test_a_rank_that_cannot_parse_its_arguments_ends_the_job(tmp_path):
+    """Arguments are compared, and parsed, once the ranks are one job: a rank whose options
+    are refused (here rank 0's) ends it instead of leaving the others in their first
+    collective call."""
+    out = ["-o", str(tmp_path / "x.exr")]
+    done = _mpmd([*CLI, "--resolution", "8x8", "--bogus", *out],
+                 [*CLI, "--resolution", "8x8", *out], timeout=60)
+    assert done.returncode != 0
+    assert "different arguments" in done.stderr
+    done = _mpi(2, "-m", "mi_partpm.cli", "render", "cornell_box", "--bogus", "-o",
+                str(tmp_path / "x.exr"), timeout=60)
+    assert done.returncode == 2 and "unrecognized arguments: --bogus" in done.stderr
+
+
+def test_a_scene_files_mpi_integrator_renders_on_the_ranks(tmp_path):
+    """The scene file's own partpm with backend = mpi is what runs on the ranks (no command
+    line option needed)."""
+    xml = tmp_path / "mpi.xml"
+    xml.write_text('<scene version="3.0.0"><integrator type="partpm"><integer '
+                   'name="photon_count" value="2000"/><integer name="map_count" value="2"/>'
+                   '<string name="backend" value="mpi"/></integrator><sensor type="perspective">'
+                   '<film type="hdrfilm"><integer name="width" value="8"/><integer name="height" '
+                   'value="8"/></film></sensor><shape type="sphere"><emitter type="area"/>'
+                   '</shape><shape type="rectangle"><transform name="to_world"><translate '
+                   'z="-3"/><scale value="5"/></transform></shape></scene>')
+    done = _mpi(2, "-m", "mi_partpm.cli", "render", str(xml), "-o", str(tmp_path / "s.exr"),
+                timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "rank " in done.stdout and (tmp_path / "s.exr").exists()
 
 
 def test_only_rank_0_reports_progress(tmp_path):

@@ -118,7 +118,14 @@ SMALL = ["render", "cornell_box", "--resolution", "8x8", "--spp", "1", "--photon
     ([*SMALL, "--passes", "100", "--alpha", "0.01", "--final-gather", "1", "--direct", "nee",
       "-o", "x.exr"], r"alpha = 0.01 shrinks the final gather's radius 0.05 to .* by pass 100"),
     ([*SMALL, "--radius-fraction", "1e-20", "-o", "x.exr"],
-     r"the radius, a fraction 1e-20 of the scene's size 2, is 2e-20: below 1e-18"),
+     r"the radius, radius_fraction = 1e-20 of the scene's size 2, is 2e-20: below 1e-18, the "
+     r"least radius whose square float32 compares \(raise radius_fraction or give radius\)"),
+    ([*SMALL, "--caustic-photons", "100", "--caustic-radius-fraction", "1e-20", "-o", "x.exr"],
+     r"the caustic_radius, caustic_radius_fraction = 1e-20 of the scene's size 2, is 2e-20: "
+     r".*\(raise caustic_radius_fraction or give caustic_radius\)"),
+    ([*SMALL, "--caustic-photons", "100", "--radius-fraction", "1e-18", "-o", "x.exr"],
+     r"the caustic_radius, a quarter of radius_fraction = 1e-18 of the scene's size 2, is "
+     r"5e-19: .*\(raise radius_fraction or give caustic_radius\)"),
     (["render", "cornell_box", "-o", "x.exr", "--stats-json", "/proc/x.json"],
      "--stats-json .* cannot be written"),
 ])

@@ -144,13 +144,18 @@ def test_no_batch_is_traced_twice_where_paths_store_many_photons(monkeypatch):
     """The pilot measures the photons stored per path before the batches size their
     buffers, so a scene that stores twice the Cornell box's does not trace a batch again (a
     buffer too small means tracing that batch again). The pilot's paths are traced again by
-    the first batch: a run of one batch is the pilot and that batch."""
+    the first batch; a run of a sixteenth of a batch or less is one batch without a pilot,
+    and a longer run of one batch is the pilot and that batch."""
     calls = record_tracer_kernels(monkeypatch)
     photons = trace_photons(closed_white_box(), 60_000, 2, 0, batch_size=32_000)
     assert len(photons) / 60_000 > 5
     assert [width for width, _ in calls] == [2000, 32_000, 28_000]
     calls.clear()
     assert_same_photons(photons, trace_photons(closed_white_box(), 60_000, 2, 0))
+    assert [width for width, _ in calls] == [60_000]
+    calls.clear()
+    assert_same_photons(photons, trace_photons(closed_white_box(), 60_000, 2, 0,
+                                               batch_size=2 ** 19))
     assert [width for width, _ in calls] == [8192, 60_000]
 
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import logging
 import sys
-from contextlib import nullcontext
 
 from .common import UsageError, interrupted, parse_resolution
 from .experiments import (run_bench, run_calibrate, run_compare, run_converge, run_hwsim,
@@ -41,40 +40,33 @@ COMMANDS = {"render": run_render, "compare": run_compare, "speedup": run_speedup
             "converge": run_converge, "figures": run_figures, "calibrate": run_calibrate}
 
 
-def _as_one_job(args, argv):
-    """Where ``render`` runs as an MPI job (``--backend mpi``), its ranks run it as one job
-    (:func:`~mi_partpm.backends.one_job`); a render started by mpiexec on several ranks with
-    the local backend is refused (every rank would render and write the whole image)."""
-    from ..backends import MPIUnavailable, comm_world, launcher_ranks, one_job
-    if args.command != "render":
-        return nullcontext()
-    ranks = launcher_ranks()
-    if getattr(args, "backend", "local") != "mpi":
-        if ranks > 1:
-            raise UsageError(f"this process is one of the {ranks} ranks of an MPI job "
-                             f"(mpiexec), but --backend is local: every rank would render the "
-                             f"whole image and write it; pass --backend mpi")
-        return nullcontext()
-    if ranks == 1:
-        logging.getLogger(__name__).warning(
-            "--backend mpi in an MPI job of one rank: start it with mpiexec -n P to render on "
-            "P ranks")
-    try:
-        comm = comm_world()
-    except MPIUnavailable as e:
-        raise UsageError(str(e)) from None
-    return one_job(comm, argv)
-
-
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # Started by mpiexec on several ranks: the ranks run the command as one job, from the
+    # parsing of their arguments on (a rank that fails alone would leave the others waiting).
+    from ..backends import MPIUnavailable, comm_world, launcher_ranks, run_as_one_job
+    if launcher_ranks() > 1:
+        try:
+            comm = comm_world()
+        except MPIUnavailable:
+            comm = None                 # no MPI here: a render refuses to run locally
+        if comm is not None and comm.size > 1:
+            return run_as_one_job(comm, argv, lambda: _main(argv, comm))
+    return _main(argv)
+
+
+def _main(argv, comm=None) -> int:
+    """The command of ``argv``; ``comm``: the MPI job it is a rank of (its errors say which
+    rank, and ranks other than 0 log only warnings)."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.WARNING if getattr(args, "quiet", False) else logging.INFO,
-                        format="%(message)s", stream=sys.stderr)
+    rank = comm.rank if comm is not None else 0
+    logging.basicConfig(level=logging.WARNING if getattr(args, "quiet", False) or rank
+                        else logging.INFO, format="%(message)s", stream=sys.stderr)
     try:
-        with _as_one_job(args, sys.argv[1:] if argv is None else argv):
-            return COMMANDS[args.command](args)
+        return COMMANDS[args.command](args)
     except UsageError as e:
-        print(f"partpm: error: {e}", file=sys.stderr)
+        where = f" on MPI rank {rank} of {comm.size}" if comm is not None else ""
+        print(f"partpm: error{where}: {e}", file=sys.stderr)
         return 2
     except BaseException as e:      # Ctrl-C, also where Mitsuba wrapped it in its own error
         if not interrupted(e):

@@ -197,6 +197,7 @@ def run_render(args) -> int:
             raise UsageError(f"--checkpoint-every writes the image between passes: the scene "
                              f"file's integrator ({args.integrator}) is not a progressive "
                              f"partpm (passes > 1 or time_limit)")
+    _check_ranks(integrator, args.integrator)
     film = scene.sensors()[0].film()
     log.info("scene %s: %dx%d, %s%s", args.scene, film.size()[0], film.size()[1], integrator,
              " (the scene file's integrator)" if own else "")
@@ -219,6 +220,24 @@ def run_render(args) -> int:
     if not args.quiet:
         print(_summary(stats, seconds, out))
     return 0
+
+
+def _check_ranks(integrator, name: str):
+    """Under mpiexec with several ranks, a render whose integrator runs locally is refused
+    (every rank would render the whole image and write it); with the MPI backend in a job
+    of one rank, a warning says how to start P."""
+    from ..backends import launcher_ranks
+    backend = getattr(integrator, "backend", None)
+    ranks = launcher_ranks()
+    if getattr(backend, "name", "local") != "mpi":
+        if ranks > 1:
+            raise UsageError(f"this process is one of the {ranks} ranks of an MPI job "
+                             f"(mpiexec), but the integrator ({name}) renders locally: every "
+                             f"rank would render the whole image and write it; pass --backend "
+                             f"mpi (partpm), or give the scene file's partpm backend = mpi")
+    elif backend.comm.size == 1:
+        log.warning("--backend mpi in an MPI job of one rank: start it with mpiexec -n P to "
+                    "render on P ranks")
 
 
 class _stop_on_interrupt:

@@ -101,8 +101,9 @@ def photon_payload(forest: Forest, index, active=True):
 
 def check_queries(p, name: str = "p", active=True) -> mi.Point3f:
     """The query points ``p`` as ``mi.Point3f`` (array-like (Q, 3) too,
-    :func:`~.forest.as_points`), every ``active`` one finite: a ValueError naming ``name``
-    otherwise (an inactive lane may hold anything)."""
+    :func:`~.forest.as_points`), every ``active`` one finite with coordinates within
+    +-:data:`~.forest.MAX_COORD`: a ValueError naming ``name`` otherwise (an inactive lane may
+    hold anything)."""
     p = as_points(p, name)
     check_coordinates(p, name, active)
     return p
@@ -111,6 +112,11 @@ def check_queries(p, name: str = "p", active=True) -> mi.Point3f:
 #: The least nonzero radius: the square of a smaller one is below float32's normal range,
 #: where squared distances lose their precision (or flush to zero).
 MIN_RADIUS = 1e-18
+
+
+def below_min_radius() -> str:
+    """How the messages that refuse a radius below :data:`MIN_RADIUS` say why."""
+    return f"below {MIN_RADIUS:g}, the least radius whose square float32 compares"
 
 
 def check_per_query(value, name: str, width: int, radius: bool = True, active=True):
