@@ -296,6 +296,11 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
                                                        dr.zeros(mi.Float, width))
     parts = []
     depth = 0
+    # Once at most half of the lanes are still at work, the loop goes on over those alone
+    # (``lanes``: their indices in the wavefront), reading the random numbers each would
+    # have drawn in the whole wavefront (:class:`_LaneSampler`): chains of delta bounces
+    # through glass (a few paths, many bounces) no longer cost whole-wavefront passes.
+    lanes, wavefront = None, sampler
     while depth < limit:
         si = scene.ray_intersect(ray, active)
         if depth == 0:
@@ -308,7 +313,8 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         if depth == 0 and hide_emitters:
             show = mi.Bool(False) & show
         mis = _emission_mis(scene, prev_si, prev_pdf, si, show) if trace else 1.0
-        L += dr.select(show, beta * emitter.eval(si, show) * mis, 0.0) * emission
+        L = _add_light(L, dr.select(show, beta * emitter.eval(si, show) * mis, 0.0) * emission,
+                       lanes)
         active &= si.is_valid()
         bsdf = si.bsdf(ray)
         flags = bsdf.flags()
@@ -334,25 +340,26 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
                 parts.append(VisiblePoints(
                     si=dr.gather(mi.SurfaceInteraction3f, si, index),
                     bsdf=dr.gather(mi.BSDFPtr, bsdf, index),
-                    beta=dr.gather(mi.Spectrum, beta, index), lane=index,
+                    beta=dr.gather(mi.Spectrum, beta, index), lane=_lanes_of(index, lanes),
                     max_bounce=dr.full(mi.UInt32, (limit - depth - 1) if bounded
                                        else 0xFFFFFFFF, dr.width(index))))
             if nee and depth + 2 <= limit:
-                L += beta * direct_light(scene, sampler, si, bsdf, smooth, lobes) * emission
+                L = _add_light(L, beta * direct_light(scene, sampler, si, bsdf, smooth, lobes)
+                               * emission, lanes)
         # Follow the delta lobes (mirror, glass, plastic's coat); with "trace", the glossy
         # surfaces by sampling their glossy and delta lobes.
         follow = active & (mi.has_flag(flags, mi.BSDFFlags.Delta) | traced) & \
             (depth + 1 < limit)
         if trace and depth + 2 <= limit:
-            L += beta * _glossy_direct(scene, sampler, si, bsdf, traced & active) * \
-                emission
+            L = _add_light(L, beta * _glossy_direct(scene, sampler, si, bsdf, traced & active)
+                           * emission, lanes)
         if trace and glossy_samples > 1:
             split = follow & traced
             index = dr.compress(split)
             if dr.width(index):
                 dr.eval(si, bsdf, beta)
                 splits.append((depth, dr.gather(mi.SurfaceInteraction3f, si, index),
-                               dr.gather(mi.Spectrum, beta, index), index))
+                               dr.gather(mi.Spectrum, beta, index), _lanes_of(index, lanes)))
             follow &= ~traced
         bs, weight = bsdf.sample(ctx_delta, si, sampler.next_1d(follow),
                                  sampler.next_2d(follow), follow & ~traced)
@@ -375,11 +382,23 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
             beta = dr.select(survive, beta / q, 0.0)
             follow &= survive
         active = follow
-        sampler.schedule_state()
+        wavefront.schedule_state()
         dr.eval(L, beta, valid, active, ray)
         depth += 1
-        if not dr.any(active)[0]:
+        at_work = int(dr.count(active)[0])
+        if at_work == 0:
             break
+        if at_work <= dr.width(active) // 2:
+            keep = dr.compress(active)
+            ray, beta = dr.gather(mi.Ray3f, ray, keep), dr.gather(mi.Spectrum, beta, keep)
+            if trace:
+                prev_si = dr.gather(mi.SurfaceInteraction3f, prev_si, keep)
+                prev_pdf = dr.gather(mi.Float, prev_pdf, keep)
+                dr.eval(prev_si, prev_pdf)
+            lanes = _lanes_of(keep, lanes)
+            active = dr.full(mi.Bool, True, at_work)
+            sampler = _LaneSampler(wavefront, lanes, width)
+            dr.eval(ray, beta, lanes)
     for depth_at, si, beta_at, lanes in splits:
         L = _split_paths(scene, si, beta_at, lanes, depth_at, limit, bounded, rr_depth, nee,
                          emission, glossy_samples, seed, L, parts, ctx_traced, unsplit)
@@ -388,6 +407,44 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
                                dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0),
                                dr.zeros(mi.UInt32, 0))]
     return EyePaths(emitted=L, valid=valid, points=_concat_points(parts))
+
+
+def _lanes_of(index, lanes):
+    """The wavefront lanes of ``index`` (positions among the lanes at work, ``lanes``; None:
+    all lanes, in order)."""
+    return index if lanes is None else dr.gather(mi.UInt32, lanes, index)
+
+
+def _add_light(L, value, lanes):
+    """``L`` (per wavefront lane) with ``value`` (per lane at work) added to it."""
+    if lanes is None:
+        return L + value
+    dr.scatter_add(L, value, lanes)
+    return L
+
+
+class _LaneSampler:
+    """A sampler's random numbers for the lanes ``lanes`` of its wavefront of ``width``: each
+    draw is the whole wavefront's, with the mask of those lanes spread over it, read at
+    them; so every lane draws what it would without the others (the same image)."""
+
+    def __init__(self, sampler, lanes, width: int):
+        self.sampler, self.lanes, self.width = sampler, lanes, width
+
+    def _mask(self, active):
+        mask = dr.zeros(mi.Bool, self.width)
+        dr.scatter(mask, dr.full(mi.Bool, True, dr.width(self.lanes)) & mi.Bool(active),
+                   self.lanes)
+        return mask
+
+    def next_1d(self, active=True):
+        return dr.gather(mi.Float, self.sampler.next_1d(self._mask(active)), self.lanes)
+
+    def next_2d(self, active=True):
+        return dr.gather(mi.Point2f, self.sampler.next_2d(self._mask(active)), self.lanes)
+
+    def schedule_state(self):
+        self.sampler.schedule_state()
 
 
 def _power_heuristic(a, b):
