@@ -388,7 +388,7 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         at_work = int(dr.count(active)[0])
         if at_work == 0:
             break
-        if at_work <= dr.width(active) // 2:
+        if at_work <= dr.width(active) * COMPACT_SHARE:
             keep = dr.compress(active)
             ray, beta = dr.gather(mi.Ray3f, ray, keep), dr.gather(mi.Spectrum, beta, keep)
             if trace:
@@ -407,6 +407,11 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
                                dr.zeros(mi.Spectrum, 0), dr.zeros(mi.UInt32, 0),
                                dr.zeros(mi.UInt32, 0))]
     return EyePaths(emitted=L, valid=valid, points=_concat_points(parts))
+
+
+#: The eye-path loop goes on over the lanes still at work alone once they are at most this
+#: share of those it ran over (0: never).
+COMPACT_SHARE = 0.5
 
 
 def _lanes_of(index, lanes):

@@ -167,6 +167,25 @@ def test_same_seed_same_image_different_seed_differs():
     assert not np.array_equal(a, c)
 
 
+@pytest.mark.parametrize("scene, props", [
+    ("caustic_glass", {}),
+    ("glossy_spheres", {"glossy": "trace", "glossy_samples": 2, "direct": "nee"}),
+    ("cornell_box", {"direct": "nee", "max_depth": 7, "passes": 2}),
+])
+def test_eye_paths_over_the_lanes_at_work_give_the_same_image(monkeypatch, scene, props):
+    """The eye-path loop goes on over the lanes still at work once they are few (chains of
+    glass bounces), each lane reading the random numbers it would draw in the whole
+    wavefront: the image must be the one of a loop over every lane, bit for bit."""
+    import mi_partpm.eyepath as eyepath
+    s = mi_partpm.load_scene(scene, resolution=(24, 20), spp=2)
+    desc = {"type": "partpm", "photon_count": 5000, "map_count": 2, **props}
+    compacted = np.array(mi.render(s, integrator=mi.load_dict(desc), seed=3))
+    monkeypatch.setattr(eyepath, "COMPACT_SHARE", 0.0)
+    every_lane = np.array(mi.render(s, integrator=mi.load_dict(desc), seed=3))
+    np.testing.assert_array_equal(compacted, every_lane)
+    assert compacted.max() > 0
+
+
 def test_scene_file_usage_from_xml(tmp_path):
     """<integrator type="partpm"> inside a scene file works after import mi_partpm."""
     xml = tmp_path / "scene.xml"
