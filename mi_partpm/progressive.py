@@ -127,10 +127,15 @@ def radius_schedule(radius: float, alpha: float, pass_index: int) -> float:
     alpha (j + 1) / (alpha j + 1). It goes to zero as i^((alpha - 1) / 2) while the photons
     found grow without bound: the radius of estimates that have no eye path of their own
     (a final gather's hits)."""
-    r2 = float(radius) ** 2
-    for j in range(pass_index):
-        r2 *= alpha * (j + 1) / (alpha * j + 1)
-    return r2 ** 0.5
+    return float(radius) * math.exp(_log_shrink(alpha, pass_index) / 2)
+
+
+def _log_shrink(alpha: float, pass_index: int) -> float:
+    """log(r_i^2 / r_0^2) of :func:`radius_schedule`: the product is
+    Gamma(i + 1) Gamma(1/alpha) / Gamma(i + 1/alpha), here in logarithms (no loop over the
+    passes, no underflow)."""
+    return math.lgamma(pass_index + 1) + math.lgamma(1 / alpha) - \
+        math.lgamma(pass_index + 1 / alpha)
 
 
 def check_first_pass(radius: float, alpha: float, name: str = "radius"):
@@ -146,12 +151,8 @@ def check_first_pass(radius: float, alpha: float, name: str = "radius"):
 def check_schedule(radius: float, alpha: float, passes: int):
     """A ValueError naming ``alpha`` where :func:`radius_schedule` falls below
     :data:`~mi_partpm.kdtree.radius.MIN_RADIUS` within ``passes`` passes (the final gather's
-    radius: a small alpha shrinks it by about alpha times the pass count each pass). The
-    schedule's product is r_i^2 = r_0^2 Gamma(i + 1) Gamma(1/alpha) / Gamma(i + 1/alpha),
-    evaluated in logarithms: no loop over the passes."""
-    i = passes - 1
-    log_r2 = 2 * math.log(radius) + math.lgamma(i + 1) + math.lgamma(1 / alpha) - \
-        math.lgamma(i + 1 / alpha)
+    radius: a small alpha shrinks it by about alpha times the pass count each pass)."""
+    log_r2 = 2 * math.log(radius) + _log_shrink(alpha, passes - 1)
     if log_r2 < 2 * math.log(MIN_RADIUS):
         raise ValueError(f"alpha = {alpha:g} shrinks the final gather's radius {radius:g} to "
                          f"{math.exp(log_r2 / 2):.3g} by pass {passes}, {below_min_radius()}: "

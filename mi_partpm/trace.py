@@ -227,12 +227,12 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     n_lanes = int(sizes[maps].sum())
     if n_lanes == 0 or max_depth < 1:
         return empty_photons(photon_count, map_count)
-    run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
-               min_bounce, PATHS.index(paths), caustic_through == "glossy",
-               caustic_past_landings, maps, sizes[maps])
     if n_lanes > 0xFFFFFFFF:
         raise ValueError(f"a tracing run has at most 2^32 - 1 photons, got {n_lanes} (trace "
                          f"the maps in several runs: maps=...)")
+    run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
+               min_bounce, PATHS.index(paths), caustic_through == "glossy",
+               caustic_past_landings, maps, sizes[maps])
     # A run of up to ``batch_size // PILOT_SHARE`` paths is one batch with room for
     # PILOT_GUESS photons per path. A longer run traces a pilot of a few thousand paths
     # first, which measures the photons stored per path before the batches size their
@@ -386,7 +386,7 @@ class _Run:
         dr.eval(photons.points, photons.code, photons.flux, photons.maps, photons.bounces)
         return photons, int(segments[0])
 
-    def _kernel(self, first, photons, capacity, ranked):
+    def _kernel(self, start, photons, capacity, ranked):
         # Uninitialised: only the slots the kernel writes are read. Every run of slots is
         # full but a lane's last, whose fill the lane writes when it is done.
         slot_run = claim_runs()[1]
@@ -399,7 +399,7 @@ class _Run:
         # Recording the loop once instead of twice (the loop optimisation's second recording)
         # saves about 0.2 s a call; the kernel is the same.
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
-            segments = _trace_paths(self, first, photons, out, runs, capacity,
+            segments = _trace_paths(self, start, photons, out, runs, capacity,
                                     lane_count(photons), counts, too_deep)
         total = dr.sum(segments)
         dr.eval([a for a in out if a is not None], counts, too_deep, runs, total)

@@ -44,7 +44,8 @@ import mitsuba as mi
 import numpy as np
 
 __all__ = ["Forest", "build_forest", "as_points", "shared_leaf_size", "morton_codes", "morton_order",
-           "tree_bytes", "tree_depth", "check_coordinates", "MAX_MAPS", "MAX_COORD", "LEAF_SIZE", "NODE_BYTES", "LEAF_ENTRY_BYTES",
+           "tree_bytes", "tree_depth", "check_coordinates", "MAX_MAPS", "MAX_COORD", "LEAF_SIZE",
+           "NODE_BYTES", "LEAF_ENTRY_BYTES",
            "LEAF_BOX_BYTES", "RECORD_FLOATS", "LAYOUTS", "rows_in_order"]
 
 #: Default most photons per leaf of a tree of one map (a shared tree's: :func:`shared_leaf_size`);
@@ -627,24 +628,30 @@ def _build_groups(p, ids, counts, starts, depth, node_base, nodes):
     return order
 
 
+def _host_uint32(values, name: str, allowed: str, largest: int) -> mi.UInt32:
+    """Array-like ``values`` as ``mi.UInt32``: integers of shape (N,) in [0, ``largest``];
+    anything else a ValueError saying that ``name`` must be ``allowed``."""
+    host = np.asarray(values)
+    if host.ndim != 1 or not (np.issubdtype(host.dtype, np.integer) or host.size == 0):
+        raise ValueError(f"{name} must be {allowed}, one per point (shape (N,)); got dtype "
+                         f"{host.dtype}, shape {host.shape}")
+    if host.size and (host.min() < 0 or host.max() > largest):
+        raise ValueError(f"{name} must be {allowed}; got values from {host.min()} to "
+                         f"{host.max()}")
+    return mi.UInt32(host.astype(np.uint32))
+
+
 def _as_payload(payload, n_points):
     """``payload`` as ``mi.UInt32`` of one entry per point, or None: a ``mi.UInt32`` as it
     is, integers of shape (N,) converted; anything else a ValueError naming ``payload``."""
     if payload is None or isinstance(payload, mi.UInt32):
-        host = None
+        pass
     elif dr.is_array_v(payload):
         raise ValueError(f"payload must be mi.UInt32 or integers of shape (N,), got "
                          f"{type(payload).__name__} (reinterpret other 32-bit values with "
                          f"dr.reinterpret_array)")
     else:
-        host = np.asarray(payload)
-        if host.ndim != 1 or not (np.issubdtype(host.dtype, np.integer) or host.size == 0):
-            raise ValueError(f"payload must be integers in [0, 2^32), one per point (shape "
-                             f"(N,)); got dtype {host.dtype}, shape {host.shape}")
-        if host.size and (host.min() < 0 or host.max() > 0xFFFFFFFF):
-            raise ValueError(f"payload must be integers in [0, 2^32), got values from "
-                             f"{host.min()} to {host.max()}")
-        payload = mi.UInt32(host.astype(np.uint32))
+        payload = _host_uint32(payload, "payload", "integers in [0, 2^32)", 0xFFFFFFFF)
     if payload is not None and dr.width(payload) != n_points:
         raise ValueError(f"payload has {dr.width(payload)} entries for {n_points} points")
     return payload
@@ -722,15 +729,8 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     elif isinstance(map_ids, mi.UInt32):
         ids = map_ids
     else:
-        host = np.asarray(map_ids)
         bound = "" if map_count is None else f", < map_count = {map_count}"
-        if host.ndim != 1 or not (np.issubdtype(host.dtype, np.integer) or host.size == 0):
-            raise ValueError(f"map_ids must be integers >= 0{bound}, one per point (shape "
-                             f"(N,)); got dtype {host.dtype}, shape {host.shape}")
-        if host.size and (host.min() < 0 or host.max() > 0xFFFFFFFE):
-            raise ValueError(f"map_ids must be integers >= 0{bound}; got values from "
-                             f"{host.min()} to {host.max()}")
-        ids = mi.UInt32(host.astype(np.uint32))
+        ids = _host_uint32(map_ids, "map_ids", f"integers >= 0{bound}", 0xFFFFFFFE)
     if map_count is None:
         map_count = int(dr.max(ids)[0]) + 1 if n_points and dr.width(ids) == n_points else 1
         if map_count > MAX_MAPS:
