@@ -285,6 +285,11 @@ class PhotonMapper(mi.SamplingIntegrator):
         their visible points and gather; then develop the film. With ``backend="mpi"`` rank 0
         returns the image (its ``stats["ranks"]`` lists every rank's figures); the other
         ranks return an image without emission and direct light."""
+        # Tasks Mitsuba still runs in the background (an image that mi.util.write_bitmap
+        # writes asynchronously) end first: a Dr.Jit call of this Python code that waits
+        # for the thread pool holds the interpreter lock, which such a task may need, and the
+        # two would wait for each other for ever.
+        mi.Thread.wait_for_tasks()
         with dr.suspend_grad():       # not differentiable (see render_backward)
             return self._render(scene, sensor, seed, spp, develop, evaluate)
 

@@ -44,15 +44,18 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
     limit = segment_limit(max_depth)
     ctx = lobe_context(lobes)
     count = len(points)
+    # The ray index and the sample count enter the kernels as opaque values, so every ray
+    # runs the same kernels (compiled once) instead of kernels of its own.
+    n_samples = dr.opaque(mi.UInt64, samples)
     for j in range(samples):
         rng = mi.PCG32(count, dr.opaque(mi.UInt64, seed & 0xFFFFFFFFFFFFFFFF),
-                       dr.arange(mi.UInt64, count) * samples + j)
+                       dr.arange(mi.UInt64, count) * n_samples + dr.opaque(mi.UInt64, j))
         si, bsdf = points.si, points.bsdf
         bs, weight = bsdf.sample(ctx, si, rng.next_float32(),
                                  mi.Point2f(rng.next_float32(), rng.next_float32()))
         # Only the non-delta lobes: the delta ones are the eye path's own continuation.
         active = dr.any(weight != 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-        beta = points.beta * weight / samples
+        beta = points.beta * weight / dr.opaque(mi.Float, samples)
         ray = si.spawn_ray(si.to_world(bs.wo))
         # Segments left: the eye path's, this one, then photons of max_bounce - 1 at most.
         bounce_left = points.max_bounce - 1 if max_depth != UNLIMITED_DEPTH else None

@@ -205,3 +205,36 @@ def test_gradients_are_refused_with_a_clear_error():
     with pytest.raises(Exception, match="not differentiable.*prb"):
         dr.backward(dr.mean(img, axis=None))
     assert not dr.grad_enabled(integrator.render(scene, spp=1))
+
+
+_RENDER_WHILE_WRITING = """
+import sys, mitsuba as mi
+mi.set_variant(sys.argv[1])
+import mi_partpm
+from mi_partpm.scenes import load_scene
+scene = load_scene("cornell_box", resolution=(128, 128), spp=4)
+for i in range(9):
+    kind = ("path", "pm", "partpm")[i % 3]
+    props = {} if kind == "path" else {"photon_count": 50000}
+    image = mi.render(scene, integrator=mi.load_dict({"type": kind, **props}))
+    for ext in ("png", "exr"):       # written in the background (write_async=True)
+        mi.util.write_bitmap(f"{sys.argv[2]}/{kind}.{ext}", image)
+print("done")
+"""
+
+
+def test_a_render_right_after_background_image_writes_does_not_hang(tmp_path):
+    """mi.util.write_bitmap writes in Mitsuba's thread pool by default. Our render() runs
+    Python code that waits for that pool while holding the interpreter lock, which the
+    write may need. Without waiting for such tasks first, this loop (renders alternating
+    with png and exr writes) hung in each of ten runs while developing, at its second to
+    fifth render; with the wait, in none. It runs in a process of its own, so that a hang
+    is a timeout, not a stuck suite."""
+    import subprocess
+    import sys
+    try:
+        done = subprocess.run([sys.executable, "-c", _RENDER_WHILE_WRITING, mi.variant(),
+                               str(tmp_path)], capture_output=True, text=True, timeout=240)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the renders after background image writes did not end within 240 s")
+    assert done.returncode == 0 and "done" in done.stdout, done.stdout + done.stderr
