@@ -383,6 +383,27 @@ def test_final_gather_matches_path_and_beats_direct_visualisation(cornell):
         pytest.fail(f"final gather: relMSE {e_fg:.5f} vs {e_paper:.5f}; images in {where}")
 
 
+def test_gather_rays_share_their_kernels():
+    """Every gather ray runs the same kernels, so a render's kernels do not grow with
+    final_gather: after a render with 3 gather rays, one with 7 compiles no kernel (every
+    kernel a cache hit). With each ray's index and the ray count as literals in its
+    kernels, the second render compiled 22 new kernels here, and a first render with 256
+    rays spent over 100 s compiling."""
+    import drjit as dr
+    from mi_partpm.scenes import load_scene
+    scene = load_scene("cornell_box", resolution=(8, 8), spp=1)
+
+    def compiled(rays):
+        integrator = mi.load_dict({"type": "partpm", "photon_count": 2000, "direct": "nee",
+                                   "final_gather": rays})
+        dr.kernel_history()                                  # clears the history
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            mi.render(scene, integrator=integrator)
+            return sum(1 for k in dr.kernel_history() if "hash" in k and not k["cache_hit"])
+    compiled(3)
+    assert compiled(7) == 0
+
+
 def test_final_gather_needs_nee():
     with pytest.raises(Exception, match=r"final_gather = 4 needs direct = 'nee'"):
         mi.load_dict({"type": "partpm", "final_gather": 4})
