@@ -173,6 +173,8 @@ def fixed_radius(scene: mi.Scene, radius, radius_fraction: float,
     from .scenes import scene_bounds
     if radius is not None:
         return float(radius)
+    if not scene.shapes():        # no photon is ever stored: any radius renders the same
+        return float(radius_fraction)
     extent = scene_bounds(scene).extents()
     longest = float(dr.max(mi.ScalarVector3f(extent)))
     if not longest > 0:

@@ -225,7 +225,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     maps = np.arange(map_count) if maps is None else np.asarray(list(maps), dtype=np.int64)
     max_depth = segment_limit(max_depth)
     n_lanes = int(sizes[maps].sum())
-    if n_lanes == 0 or max_depth < 1:
+    if n_lanes == 0 or max_depth < 1 or not scene.shapes():    # (no shape: every photon escapes)
         return empty_photons(photon_count, map_count)
     if n_lanes > 0xFFFFFFFF:
         raise ValueError(f"a tracing run has at most 2^32 - 1 photons, got {n_lanes} (trace "

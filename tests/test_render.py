@@ -271,6 +271,27 @@ def test_scene_where_no_photon_can_be_stored(caplog):
     np.testing.assert_allclose(img, 1.0, rtol=1e-4)
 
 
+@pytest.mark.parametrize("props", [
+    {"type": "partpm"}, {"type": "partpm", "radius": 0.1},
+    {"type": "partpm", "radius": 0.1, "direct": "nee"}, {"type": "pm"}])
+def test_a_scene_of_an_environment_alone_renders_it(props):
+    """No shape at all, only a sky of (0.5, 0.6, 0.7): every photon escapes, and the image
+    is the sky, as path gives it. The tracer's loop failed on such a scene, and the default
+    radius was refused for its empty box."""
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 45,
+                   "sampler": {"type": "independent", "sample_count": 2},
+                   "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.6, 0.7]}}})
+    integrator = mi.load_dict({**props, "photon_count": 1000})
+    img = render(scene, integrator)
+    ref = render(scene, mi.load_dict({"type": "path"}))
+    assert integrator.stats["photons_stored"] == 0
+    np.testing.assert_allclose(img, ref, rtol=1e-5)
+    np.testing.assert_allclose(img.mean(axis=(0, 1)), [0.5, 0.6, 0.7], rtol=1e-3)
+
+
 @pytest.mark.parametrize("props, reason", [
     ({"max_depth": 1}, "max_depth = 1 leaves photons no segment"),
     ({"max_depth": 2, "direct": "nee"}, "max_depth = 2 leaves photons only direct light"),
