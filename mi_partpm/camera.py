@@ -15,6 +15,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .scenes import check_sensor
+
 __all__ = ["CameraPass"]
 
 
@@ -23,6 +25,7 @@ class CameraPass:
 
     def __init__(self, scene: mi.Scene, sensor, seed: int, spp: int, aovs=()):
         self.sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        check_sensor(self.sensor, spp=spp)
         self.film = self.sensor.film()
         self.sampler = self.sensor.sampler()
         if spp:

@@ -57,6 +57,10 @@ def _range_text(low, high) -> str:
     return ""
 
 
+#: The largest value of a 32-bit signed integer prop (a depth), as Mitsuba reads them.
+INT32_MAX = 2**31 - 1
+
+
 def check_int(name: str, value, low: Optional[int] = None, high: Optional[int] = None,
               allowed: str = "") -> int:
     """``value`` as an int in [low, high]; ``allowed`` replaces the range in the message."""
@@ -148,12 +152,13 @@ def read_photon_map_params(props, fixed_radius: bool = True) -> PhotonMapParams:
     """
     p = PhotonMapParams()
     p.photon_count = read_int(props, "photon_count", p.photon_count, low=1)
-    p.max_depth = read_int(props, "max_depth", UNLIMITED_DEPTH,
-                           allowed="= -1 (unlimited) or >= 1")
+    # Depths are 32-bit signed integers, as for Mitsuba's path.
+    p.max_depth = read_int(props, "max_depth", UNLIMITED_DEPTH, high=INT32_MAX,
+                           allowed=f"= -1 (unlimited) or in [1, {INT32_MAX}]")
     if p.max_depth != UNLIMITED_DEPTH and p.max_depth < 1:
-        raise ValueError(f"max_depth must be an integer = -1 (unlimited) or >= 1, "
+        raise ValueError(f"max_depth must be an integer = -1 (unlimited) or in [1, {INT32_MAX}], "
                          f"got {p.max_depth}")
-    p.rr_depth = read_int(props, "rr_depth", p.rr_depth, low=1)
+    p.rr_depth = read_int(props, "rr_depth", p.rr_depth, low=1, high=INT32_MAX)
     p.seed = read_int(props, "seed", p.seed, low=0, high=2**63 - 1)
     p.direct = read_choice(props, "direct", p.direct, DIRECT_MODES)
     p.hide_emitters = read_bool(props, "hide_emitters", p.hide_emitters)

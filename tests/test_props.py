@@ -32,9 +32,13 @@ from mi_partpm.trace import map_seeds, map_sizes
     # r^2 must be a finite float32: a larger radius divided every estimate by inf (black).
     ({"radius": 1e30}, r"radius must be a finite number in \[1e-18, 1e\+18\], got 1e\+30"),
     ({"caustic_photon_count": 1000, "caustic_radius": 1e30}, r"caustic_radius must be .*1e\+18"),
-    ({"max_depth": -2}, r"max_depth must be an integer = -1 \(unlimited\) or >= 1, got -2"),
+    ({"max_depth": -2}, r"max_depth must be an integer = -1 \(unlimited\) or in "
+                        r"\[1, 2147483647\], got -2"),
     ({"max_depth": 0}, r"max_depth .* got 0"),
-    ({"rr_depth": 0}, r"rr_depth must be an integer >= 1, got 0"),
+    # A 32-bit signed integer, as for path: a larger one failed inside Dr.Jit's tracer.
+    ({"max_depth": 99999999999}, r"max_depth must be .* in \[1, 2147483647\], got 99999999999"),
+    ({"rr_depth": 0}, r"rr_depth must be an integer in \[1, 2147483647\], got 0"),
+    ({"rr_depth": 2**31}, r"rr_depth must be an integer in \[1, 2147483647\], got 2147483648"),
     ({"direct": "both"}, r"direct must be one of 'photons', 'nee', got 'both'"),
     ({"hide_emitters": 1}, r"hide_emitters must be true or false, got 1"),
     ({"passes": 0}, r"passes must be an integer >= 1, got 0"),

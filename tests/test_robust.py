@@ -65,6 +65,16 @@ def _root(e):
     ('<scene version="3.0.0"><emitter type="constant"/><shape type="sphere"/>'
      '<sensor type="perspective" id="cam"><medium type="homogeneous"/></sensor></scene>',
      r"participating medium around its sensor 'cam'"),
+    # Mitsuba's own integrators end the process (a division by zero) on a sample count of 0.
+    ('<scene version="3.0.0"><emitter type="constant"/><shape type="sphere"/>'
+     '<sensor type="perspective"><sampler type="independent"><integer name="sample_count" '
+     'value="0"/></sampler></sensor></scene>',
+     r"the sampler of sensor \(an unnamed PerspectiveCamera\) takes sample_count = 0 .* >= 1"),
+    ('<scene version="3.0.0"><emitter type="constant"/><shape type="sphere"/>'
+     '<sensor type="perspective"><float name="fov" value="40"/><film type="hdrfilm">'
+     '<integer name="width" value="0"/>'
+     '</film></sensor></scene>', r"the film of sensor .* is 0 x 576 pixels; its width and "
+                                 r"height must be >= 1"),
 ])
 def test_cli_bad_scene_files(tmp_path, capsys, xml, message):
     path = tmp_path / "scene.xml"
@@ -73,6 +83,40 @@ def test_cli_bad_scene_files(tmp_path, capsys, xml, message):
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("partpm: error:")
     assert __import__("re").search(message, err[-1]), err[-1]
+
+
+@pytest.mark.parametrize("integrator", ["path", "partpm"])
+def test_cli_refuses_a_sample_count_of_0_for_any_integrator(tmp_path, capsys, integrator):
+    path = tmp_path / "scene.xml"
+    path.write_text('<scene version="3.0.0"><emitter type="constant"/><shape type="sphere"/>'
+                    '<sensor type="perspective"><sampler type="independent"><integer '
+                    'name="sample_count" value="0"/></sampler></sensor></scene>')
+    assert main(["render", str(path), "--integrator", integrator,
+                 "-o", str(tmp_path / "x.exr")]) == 2
+    assert "takes sample_count = 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"spp": 0}, r"spp must be an integer >= 1, got 0"),
+    ({"resolution": (0, 16)}, r"resolution must be \(width, height\), two integers >= 1, "
+                              r"got \(0, 16\)"),
+    ({"resolution": (16,)}, r"resolution must be .* got \(16,\)")])
+def test_load_scene_checks_its_arguments(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        mi_partpm.load_scene("cornell_box", **kwargs)
+
+
+def test_a_render_with_a_sample_count_of_0_is_refused_not_a_crash():
+    scene = mi.load_dict({"type": "scene", "sky": {"type": "constant"},
+                          "ball": {"type": "sphere"},
+                          "cam": {"type": "perspective", "sampler": {
+                              "type": "independent", "sample_count": 0}}})
+    with pytest.raises(Exception) as e:
+        mi.render(scene, integrator=mi.load_dict({"type": "partpm", "photon_count": 100}))
+    assert "takes sample_count = 0" in str(_root(e.value))
+    # The render's spp replaces the sampler's count, as in Mitsuba.
+    mi.render(scene, integrator=mi.load_dict({"type": "partpm", "photon_count": 100}),
+              spp=1)
 
 
 def test_resolution_for_a_scene_without_resx_says_so(tmp_path, capsys):

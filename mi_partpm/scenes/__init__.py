@@ -24,12 +24,14 @@ from typing import Optional, Tuple
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..data import find_data_file
 
 log = logging.getLogger("mi_partpm")
 
-__all__ = ["scene_names", "scene_path", "load_scene", "check_scene", "scene_bounds"]
+__all__ = ["scene_names", "scene_path", "load_scene", "check_scene", "check_sensor",
+           "scene_bounds"]
 
 _HERE = Path(__file__).resolve().parent
 
@@ -86,6 +88,16 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
     ValueError
         The file does not parse, or a parameter is not one the file takes.
     """
+    if resolution is not None:
+        ok = isinstance(resolution, (tuple, list)) and len(resolution) == 2 and all(
+            isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1
+            for v in resolution)
+        if not ok:
+            raise ValueError(f"resolution must be (width, height), two integers >= 1, got "
+                             f"{resolution!r}")
+    if spp is not None and (not isinstance(spp, (int, np.integer)) or isinstance(spp, bool)
+                            or spp < 1):
+        raise ValueError(f"spp must be an integer >= 1, got {spp!r}")
     path = scene_path(scene)
     if path.parent == _HERE:
         for param, name in SCENE_DATA.get(path.stem, {}).items():
@@ -177,6 +189,24 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
 _WARNED = set()
 
 
+def _sensor_name(sensor) -> str:
+    return repr(sensor.id()) if sensor.id() else f"(an unnamed {sensor.class_name()})"
+
+
+def check_sensor(sensor, what: str = "the scene", spp: int = 0):
+    """Refuse a sensor whose film has no pixel or whose sampler takes no sample (``spp``,
+    if not 0, replaces the sampler's count): Mitsuba renders neither (its own integrators
+    end the process with a division by zero on a sample count of 0)."""
+    size = [int(v) for v in sensor.film().crop_size()]
+    if min(size) < 1:
+        raise ValueError(f"{what}: the film of sensor {_sensor_name(sensor)} is {size[0]} x {size[1]} "
+                         f"pixels; its width and height must be >= 1")
+    count = int(spp) if spp else int(sensor.sampler().sample_count())
+    if count < 1:
+        raise ValueError(f"{what}: the sampler of sensor {_sensor_name(sensor)} takes sample_count = "
+                         f"{count} samples per pixel; give it >= 1 (or render with spp >= 1)")
+
+
 def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool = True):
     """Refuse a scene photon mapping cannot render: no emitter (nothing would be lit) or,
     when ``needs_sensor``, no sensor. The one check every entry point makes."""
@@ -187,6 +217,8 @@ def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool 
                          f"at least one light)")
     if needs_sensor and not scene.sensors():
         raise ValueError(f"{what} has no sensor: add a camera to render it")
+    if needs_sensor:
+        check_sensor(scene.sensors()[0], what)
     # Photons and eye paths travel through vacuum only: a medium would be passed through as
     # if it were not there, and the image would be wrong without a word.
     for shape in scene.shapes():
@@ -198,5 +230,5 @@ def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool 
     for sensor in scene.sensors():
         if sensor.get_medium() is not None:
             raise ValueError(f"{what} has a participating medium around its sensor "
-                             f"{sensor.id()!r}: photon mapping here renders surfaces only; "
+                             f"{_sensor_name(sensor)}: photon mapping here renders surfaces only; "
                              f"use Mitsuba's volpath for scenes with media")
