@@ -455,7 +455,9 @@ class PhotonMapper(mi.SamplingIntegrator):
 
     def _finish(self, terms):
         self.after_estimate()
-        for term in terms:
+        # The radii a next pass would search with (a render of one pass searched with the
+        # fixed radius alone, and its stats say so: no final radius).
+        for term in terms if self.stats.get("passes", 0) > 1 else ():
             if hasattr(term.state, "r2"):
                 key = "mean_final_radius" if term.name == "global" else \
                     f"{term.name}_mean_final_radius"

@@ -10,7 +10,7 @@ from ..props import check_float, check_int
 
 __all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
            "int_list", "setup", "progress", "last_line", "interrupted", "write_atomic",
-           "check_writable", "check_variant_name"]
+           "check_writable", "check_folder", "check_scene_name", "check_variant_name"]
 
 
 class UsageError(Exception):
@@ -143,10 +143,48 @@ def interrupted(e: BaseException) -> bool:
     return False
 
 
+def _file_on_the_way(path: Path):
+    """The first of ``path``'s folders (or ``path`` itself) that exists as a file, or None."""
+    for part in reversed([path, *path.parents]):
+        if part.exists() and not part.is_dir():
+            return part
+    return None
+
+
+def check_folder(path, option: str):
+    """Refuse an output folder that cannot be made or written (a file on its way, no
+    permission) before any work, naming ``option``; the folder is made when missing."""
+    path = Path(path)
+    blocked = _file_on_the_way(path)
+    if blocked is not None:
+        raise UsageError(f"{option} {str(path)!r} cannot be made: {str(blocked)!r} is a file")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f".probe{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink(missing_ok=True)
+    except OSError as e:
+        raise UsageError(f"{option} {str(path)!r} cannot be written: "
+                         f"{e.strerror or e}") from None
+
+
+def check_scene_name(scene: str):
+    """Refuse a SCENE that is neither a built-in scene nor a file, before any work."""
+    from ..scenes import scene_path
+    try:
+        scene_path(scene)
+    except FileNotFoundError as e:
+        raise UsageError(str(e)) from None
+
+
 def check_writable(path, option: str):
     """Refuse an output file that cannot be written (its folder is a file, or is not
     writable) before any work; its folder is made when missing."""
     path = Path(path)
+    blocked = _file_on_the_way(path.parent)
+    if blocked is not None:
+        raise UsageError(f"{option} {str(path)!r} cannot be written: {str(blocked)!r} is a "
+                         f"file, not a folder")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         if path.is_dir():

@@ -6,7 +6,10 @@ Each reads its options, calls the experiment in :mod:`mi_partpm.experiments` (or
 """
 from __future__ import annotations
 
-from .common import UsageError, check_variant_name, int_list, last_line, progress, setup
+from pathlib import Path
+
+from .common import (UsageError, check_folder, check_scene_name, check_variant_name,
+                     check_writable, int_list, last_line, progress, setup)
 
 __all__ = ["run_compare", "run_speedup", "run_bench", "run_hwsim", "run_scaling",
            "run_converge", "run_calibrate"]
@@ -18,6 +21,7 @@ def run_compare(args) -> int:
     from ..experiments.compare import CompareSettings, format_table, run_compare
     if not args.out:
         raise UsageError("compare needs --out DIR")
+    check_folder(args.out, "--out")
     settings = CompareSettings(
         scene=args.scene, maps=args.maps or 8, photons=args.photons,
         resolution=args.resolution or (480, 480), spp=args.spp or 4,
@@ -40,8 +44,14 @@ def run_compare(args) -> int:
 def run_bench(args) -> int:
     setup(args)
     from ..experiments.bench import format_bench, run_bench as run
-    result = run(args.out, args.scene, size="smoke" if args.smoke else "full",
-                 repeats=None if args.smoke else args.repeats, progress=progress(args))
+    check_scene_name(args.scene)
+    if args.out:
+        check_writable(args.out, "--out")
+    try:
+        result = run(args.out, args.scene, size="smoke" if args.smoke else "full",
+                     repeats=None if args.smoke else args.repeats, progress=progress(args))
+    except (FileNotFoundError, ValueError) as e:
+        raise UsageError(last_line(e)) from None
     print(format_bench(result))
     if args.out:
         print(f"wrote    {args.out}")
@@ -58,6 +68,9 @@ def run_hwsim(args) -> int:
     from hwsim.config import load_config
     from hwsim.report import format_report, run_report
     from ..experiments.provenance import code_version
+    if args.config and not Path(args.config).is_file():
+        raise UsageError(f"--config {args.config!r} is not a file")
+    check_folder(args.out, "--out")
     try:
         config = load_config(args.config)
         if args.config and "pe_count" in _toml(args.config):
@@ -80,6 +93,7 @@ def run_speedup(args) -> int:
     setup(args)
     from ..experiments.speedup import format_speedup, run_speedup
     maps = int_list("--maps", args.maps)
+    check_folder(args.out, "--out")
     try:
         result = run_speedup(args.scene, maps, args.out, args.photons, args.resolution,
                              args.spp, args.repeats, args.radius_fraction, args.seed,
@@ -140,6 +154,10 @@ def run_scaling(args) -> int:
     from ..experiments.scaling import format_scaling, run_scaling
     check_variant_name(args.variant)                 # before any rank starts
     ranks = int_list("--ranks", args.ranks)
+    if args.hostfile and not Path(args.hostfile).is_file():
+        raise UsageError(f"--hostfile {args.hostfile!r} is not a file")
+    check_scene_name(args.scene)
+    check_folder(args.out, "--out")
     extra = ["-f", args.hostfile] if args.hostfile else []
     try:
         rows = run_scaling(args.scene, ranks, args.maps, args.out, args.photons,
@@ -163,6 +181,7 @@ def run_converge(args) -> int:
         alpha=args.alpha, k=args.k, reference_spp=args.reference_spp,
         methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
         seed=args.seed, data_dir=args.data)
+    check_folder(args.out, "--out")
     try:
         settings.check()
         result = run(settings, args.out, progress=progress(args))

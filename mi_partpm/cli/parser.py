@@ -18,7 +18,8 @@ def _scene_options(p, maps_default=8):
     p.add_argument("--photons", type=positive_int("--photons"), default=100_000,
                    help="photons emitted in total N (default 100000)")
     p.add_argument("--k", type=positive_int("--k", 2, MAX_K),
-                   help=f"photons per kNN estimate of pm, in [2, {MAX_K}] (default 50)")
+                   help=f"photons per kNN estimate of pm, in [2, {MAX_K}] (default 50; "
+                        f"compare: the k whose mean radius matches partpm's)")
     p.add_argument("--direct", choices=("photons", "nee"), default="photons",
                    help="direct light from the maps (paper) or by emitter sampling")
     p.add_argument("--spp", type=positive_int("--spp"),
