@@ -385,10 +385,11 @@ def test_final_gather_matches_path_and_beats_direct_visualisation(cornell):
 
 def test_gather_rays_share_their_kernels():
     """Every gather ray runs the same kernels, so a render's kernels do not grow with
-    final_gather: after a render with 3 gather rays, one with 7 compiles no kernel (every
-    kernel a cache hit). With each ray's index and the ray count as literals in its
-    kernels, the second render compiled 22 new kernels here, and a first render with 256
-    rays spent over 100 s compiling."""
+    final_gather: after a render with 3 gather rays, one with 7 compiles (almost) no kernel.
+    With each ray's index and the ray count as literals in its kernels, it compiled 22 new
+    ones (32 for 9 rays after 4), and a first render with 256 rays spent over 100 s
+    compiling. The slack of 3: once in a full run of the suite, the second render compiled
+    one kernel of its own (a data-dependent variant; never when the test ran alone)."""
     import drjit as dr
     from mi_partpm.scenes import load_scene
     scene = load_scene("cornell_box", resolution=(8, 8), spp=1)
@@ -399,9 +400,10 @@ def test_gather_rays_share_their_kernels():
         dr.kernel_history()                                  # clears the history
         with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
             mi.render(scene, integrator=integrator)
-            return sum(1 for k in dr.kernel_history() if "hash" in k and not k["cache_hit"])
+            return [k for k in dr.kernel_history() if "hash" in k and not k["cache_hit"]]
     compiled(3)
-    assert compiled(7) == 0
+    new = compiled(7)
+    assert len(new) <= 3, [(k["operation_count"], k["size"]) for k in new]
 
 
 def test_final_gather_needs_nee():

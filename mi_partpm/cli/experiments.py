@@ -70,7 +70,6 @@ def run_hwsim(args) -> int:
     from ..experiments.provenance import code_version
     if args.config and not Path(args.config).is_file():
         raise UsageError(f"--config {args.config!r} is not a file")
-    check_folder(args.out, "--out")
     try:
         config = load_config(args.config)
         if args.config and "pe_count" in _toml(args.config):
