@@ -394,15 +394,14 @@ class _Run:
                dr.full(mi.UInt32, slot_run, capacity // slot_run) if slot_run > 1 else None]
         counts = dr.zeros(mi.UInt32, photons) if ranked else None
         runs = dr.zeros(mi.UInt32, 1)              # runs of slots claimed
+        # Stored photons whose bounce count does not fit beside their rank.
+        too_deep = dr.zeros(mi.UInt32, 1) if ranked else None
         # Recording the loop once instead of twice (the loop optimisation's second recording)
         # saves about 0.2 s a call; the kernel is the same.
         with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
-            segments, deep = _trace_paths(self, start, photons, out, runs, capacity,
-                                          lane_count(photons), counts)
-        dr.eval(segments, deep)                     # the loop's kernel
+            segments = _trace_paths(self, start, photons, out, runs, capacity,
+                                    lane_count(photons), counts, too_deep)
         total = dr.sum(segments)
-        # Lanes that stored a photon whose bounce count does not fit beside its rank.
-        too_deep = dr.sum(mi.UInt32(deep)) if ranked else None
         dr.eval([a for a in out if a is not None], counts, too_deep, runs, total)
         return out, counts, too_deep, runs, total
 
@@ -496,7 +495,8 @@ def shading_correction(si, wi):
 
 
 @dr.syntax
-def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=None):
+def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=None,
+                 too_deep=None):
     """The bounce loop of one batch (one kernel): take a photon, store, scatter, roulette.
 
     ``width`` lanes share the batch's photons (the run's paths ``first`` and on): a
@@ -507,9 +507,9 @@ def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=No
     slots the same way; ``runs`` counts the runs claimed and ``out`` holds the slots, the
     bounce words and, with runs longer than one, each run's fill. With ``counts`` (one per
     photon), each photon's count of stored photons goes there once its path has ended, and
-    each stored photon's rank among them goes beside its bounce count (:data:`RANK_SHIFT`).
-    Returns the segments each lane traced, and where a lane stored a photon whose bounce
-    count does not fit beside its rank (a flag per lane, not an atomic count per bounce)."""
+    each stored photon's rank among them goes beside its bounce count (:data:`RANK_SHIFT`);
+    ``too_deep`` counts the stored photons whose bounce count does not fit there.
+    Returns the segments each lane traced."""
     scene = run.scene
     slots, bounces, fill = out
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
@@ -526,7 +526,6 @@ def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=No
     finished = dr.full(mi.Bool, False, width)    # no photon left for the lane
     bounce = dr.zeros(mi.UInt32, width) + 1
     segments = dr.zeros(mi.UInt32, width)
-    deep = dr.full(mi.Bool, False, width)        # a stored bounce count too large for its word
     depth_limit = dr.opaque(mi.UInt32, run.max_depth)
     rr_from = dr.opaque(mi.UInt32, run.rr_depth)
     store_from = dr.opaque(mi.UInt32, run.min_bounce)
@@ -594,7 +593,7 @@ def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=No
         if dr.hint(ranked, mode="scalar"):
             dr.scatter(bounces, bounce | (rank << RANK_SHIFT), slot, write)
             rank += dr.select(store, 1, 0)
-            deep |= store & (bounce >= 1 << RANK_SHIFT)
+            dr.scatter_inc(too_deep, mi.UInt32(0), store & (bounce >= 1 << RANK_SHIFT))
         else:
             dr.scatter(bounces, bounce, slot, write)
 
@@ -621,7 +620,7 @@ def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=No
             active &= survive
             power = dr.select(survive, power / q, power)
         bounce += 1
-    return segments, deep
+    return segments
 
 
 #: The per-photon fields of :class:`Photons`, in constructor order.
