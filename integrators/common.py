@@ -64,6 +64,14 @@ def _as_int(seed) -> int:
     return seed if isinstance(seed, int) else int(dr.ravel(mi.UInt32(seed))[0])
 
 
+def _wait_for_background_tasks():
+    """Let the tasks Mitsuba still runs in the background (an image that
+    mi.util.write_bitmap writes asynchronously) end first: a Dr.Jit call of our Python code
+    that waits for the thread pool holds the interpreter lock, which such a task may need,
+    and the two would wait for each other for ever."""
+    mi.Thread.wait_for_tasks()
+
+
 @dataclass
 class Layer:
     """A set of n partitioned photon maps rebuilt every pass: the global maps or the
@@ -285,11 +293,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         their visible points and gather; then develop the film. With ``backend="mpi"`` rank 0
         returns the image (its ``stats["ranks"]`` lists every rank's figures); the other
         ranks return an image without emission and direct light."""
-        # Tasks Mitsuba still runs in the background (an image that mi.util.write_bitmap
-        # writes asynchronously) end first: a Dr.Jit call of this Python code that waits
-        # for the thread pool holds the interpreter lock, which such a task may need, and the
-        # two would wait for each other for ever.
-        mi.Thread.wait_for_tasks()
+        _wait_for_background_tasks()
         with dr.suspend_grad():       # not differentiable (see render_backward)
             return self._render(scene, sensor, seed, spp, develop, evaluate)
 
@@ -457,8 +461,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         self.after_estimate()
         # The radii a next pass would search with (a render of one pass searched with the
         # fixed radius alone, and its stats say so: no final radius).
-        for term in terms if self.stats.get("passes", 0) > 1 else ():
-            if hasattr(term.state, "r2"):
+        for term in terms:
+            if hasattr(term.state, "r2") and getattr(term.state, "passes", 0) > 1:
                 key = "mean_final_radius" if term.name == "global" else \
                     f"{term.name}_mean_final_radius"
                 self.stats[key] = float(dr.mean(dr.sqrt(term.state.r2))[0])
@@ -519,6 +523,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             raise ValueError(f"{type(self).__name__} with backend={self.backend.name!r} "
                              f"must be the scene's top-level integrator (its ranks gather "
                              f"whole images); use backend='local' inside moment or aov")
+        _wait_for_background_tasks()
         check_emitters(scene)
         note_bent_bsdfs(scene)
         width = dr.width(ray.o)

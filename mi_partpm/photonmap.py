@@ -169,7 +169,9 @@ def fixed_radius(scene: mi.Scene, radius, radius_fraction: float,
     """The fixed radius: ``radius`` if given, else a fraction of the longest side of the
     shapes' bounding box (:func:`~mi_partpm.scenes.scene_bounds`). ``names``, the props of
     the radius and of the fraction, and ``source``, where the fraction came from (default:
-    the fraction prop), name them in the message that refuses a radius below the least."""
+    the fraction prop), name them in the message that refuses a radius below the least. A
+    scene without a shape stores no photon, and any radius renders it the same: there the
+    fraction itself is returned."""
     from .scenes import scene_bounds
     if radius is not None:
         return float(radius)

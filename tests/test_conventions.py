@@ -208,7 +208,8 @@ def test_gradients_are_refused_with_a_clear_error():
 
 
 _RENDER_WHILE_WRITING = """
-import sys, mitsuba as mi
+import faulthandler, sys, mitsuba as mi
+faulthandler.dump_traceback_later(200, exit=True)     # where it hangs, before the timeout
 mi.set_variant(sys.argv[1])
 import mi_partpm
 from mi_partpm.scenes import load_scene

@@ -290,3 +290,18 @@ def test_cli_renders_a_scene_file_with_its_own_integrator(tmp_path, capsys, capl
     assert (figures["photons_emitted"], figures["map_count"], figures["passes"]) == \
         (100_000, 2, 1)
     assert "the command line's integrator (--maps) replaces the <integrator>" in caplog.text
+
+
+def test_the_final_radius_is_reported_after_passes_only():
+    """A render of one pass searched with the fixed radius alone: no final radius in its
+    stats. After 3 passes the mean final radius is below the first, also when partpm runs
+    inside another integrator (moment), whose render counts no passes of ours."""
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    one = mi.load_dict({"type": "partpm", "photon_count": 2000})
+    mi.render(scene, integrator=one)
+    assert "mean_final_radius" not in one.stats
+    for wrapped in (False, True):
+        inner = mi.load_dict({"type": "partpm", "photon_count": 2000, "passes": 3})
+        outer = mi.load_dict({"type": "moment", "nested": inner}) if wrapped else inner
+        mi.render(scene, integrator=outer)
+        assert inner.stats["mean_final_radius"] < inner.radius, wrapped

@@ -317,8 +317,7 @@ def test_bench_smoke(tmp_path, capsys):
             continue
         assert np.isfinite(r["target"]) and r["target"] > 0, name
         assert r["target_is"] in ("at least", "at most"), name
-        assert r["met"] is (r["ratio"] >= r["target"] if r["target_is"] == "at least"
-                            else r["ratio"] <= r["target"]), name
+        assert r["met"] is None, name         # the smoke size judges no target
         assert r["baseline_name"], name
         if not name.startswith(("memory", "emitting")):
             # Timed in rounds beside its baseline: the medians' ratio lies within the rounds'

@@ -146,7 +146,7 @@ def interrupted(e: BaseException) -> bool:
 def _file_on_the_way(path: Path):
     """The first of ``path``'s folders (or ``path`` itself) that exists as a file, or None."""
     for part in reversed([path, *path.parents]):
-        if part.exists() and not part.is_dir():
+        if os.path.exists(part) and not os.path.isdir(part):    # (these never raise)
             return part
     return None
 
@@ -157,7 +157,8 @@ def check_folder(path, option: str):
     path = Path(path)
     blocked = _file_on_the_way(path)
     if blocked is not None:
-        raise UsageError(f"{option} {str(path)!r} cannot be made: {str(blocked)!r} is a file")
+        raise UsageError(f"{option} {str(path)!r} cannot be made: {str(blocked)!r} is a "
+                         f"file, not a folder")
     try:
         path.mkdir(parents=True, exist_ok=True)
         probe = path / f".probe{os.getpid()}"
@@ -171,6 +172,8 @@ def check_folder(path, option: str):
 def check_scene_name(scene: str):
     """Refuse a SCENE that is neither a built-in scene nor a file, before any work."""
     from ..scenes import scene_path
+    if scene is None:                 # (a command given --list: nothing to check)
+        return
     try:
         scene_path(scene)
     except FileNotFoundError as e:

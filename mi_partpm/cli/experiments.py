@@ -21,7 +21,6 @@ def run_compare(args) -> int:
     from ..experiments.compare import CompareSettings, format_table, run_compare
     if not args.out:
         raise UsageError("compare needs --out DIR")
-    check_folder(args.out, "--out")
     settings = CompareSettings(
         scene=args.scene, maps=args.maps or 8, photons=args.photons,
         resolution=args.resolution or (480, 480), spp=args.spp or 4,
@@ -31,6 +30,8 @@ def run_compare(args) -> int:
         settings.check()
     except ValueError as e:
         raise UsageError(str(e)) from None
+    check_scene_name(args.scene)
+    check_folder(args.out, "--out")
     try:
         result = run_compare(settings, args.out, progress=progress(args))
     except (FileNotFoundError, ValueError) as e:
@@ -89,9 +90,11 @@ def run_hwsim(args) -> int:
 
 
 def run_speedup(args) -> int:
-    setup(args)
+    if not setup(args):
+        return 0
     from ..experiments.speedup import format_speedup, run_speedup
     maps = int_list("--maps", args.maps)
+    check_scene_name(args.scene)
     check_folder(args.out, "--out")
     try:
         result = run_speedup(args.scene, maps, args.out, args.photons, args.resolution,
@@ -172,7 +175,8 @@ def run_scaling(args) -> int:
 
 
 def run_converge(args) -> int:
-    setup(args)
+    if not setup(args):
+        return 0
     from ..experiments.converge import ConvergeSettings, format_converge, run_converge as run
     settings = ConvergeSettings(
         scene=args.scene, seconds=args.time, resolution=args.resolution, spp=args.spp,
@@ -180,9 +184,13 @@ def run_converge(args) -> int:
         alpha=args.alpha, k=args.k, reference_spp=args.reference_spp,
         methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
         seed=args.seed, data_dir=args.data)
-    check_folder(args.out, "--out")
     try:
         settings.check()
+    except ValueError as e:
+        raise UsageError(last_line(e)) from None
+    check_scene_name(args.scene)
+    check_folder(args.out, "--out")
+    try:
         result = run(settings, args.out, progress=progress(args))
     except (FileNotFoundError, ValueError) as e:
         raise UsageError(last_line(e)) from None

@@ -112,7 +112,7 @@ class _Bench:
             unit="s", rounds=None, **extra):
         """One row; ``rounds``: the ratio of every timed round (its range is reported);
         ``target`` None: a reference row, held to nothing."""
-        if target is None:
+        if target is None or not self.judged:
             ok = None
         else:
             ok = bool(ratio >= target if at_least else ratio <= target)
@@ -391,7 +391,7 @@ def format_bench(result) -> str:
     for r in result["rows"]:
         target = "-" if r["target"] is None else \
             f"{'>=' if r['target_is'] == 'at least' else '<='} {r['target']:g}"
-        met = "-" if r["met"] is None or smoke else "yes" if r["met"] else "NO "
+        met = "-" if r["met"] is None else "yes" if r["met"] else "NO "
         lo, hi = r.get("ratio_range", (None, None))
         spread = f"{lo:.2f}-{hi:.2f}" if lo is not None else "-"
         lines.append(f"{r['benchmark']:44} {r['ours']:9.4g} {r['baseline']:9.4g} "

@@ -86,7 +86,8 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
         The scene does not exist, or a data file it needs (a mesh) is missing: the message
         says where to get it and where to put it.
     ValueError
-        The file does not parse, or a parameter is not one the file takes.
+        The file does not parse, a parameter is not one the file takes, or ``resolution``
+        or ``spp`` is not made of integers >= 1.
     """
     if resolution is not None:
         ok = isinstance(resolution, (tuple, list)) and len(resolution) == 2 and all(
@@ -201,15 +202,22 @@ def check_sensor(sensor, what: str = "the scene", spp: int = 0):
     if min(size) < 1:
         raise ValueError(f"{what}: the film of sensor {_sensor_name(sensor)} is {size[0]} x {size[1]} "
                          f"pixels; its width and height must be >= 1")
-    count = int(spp) if spp else int(sensor.sampler().sample_count())
+    if spp:
+        if spp < 1:
+            raise ValueError(f"spp must be an integer >= 1 (or 0: the sampler's own count), "
+                             f"got {spp}")
+        return
+    count = int(sensor.sampler().sample_count())
     if count < 1:
-        raise ValueError(f"{what}: the sampler of sensor {_sensor_name(sensor)} takes sample_count = "
-                         f"{count} samples per pixel; give it >= 1 (or render with spp >= 1)")
+        raise ValueError(f"{what}: the sampler of sensor {_sensor_name(sensor)} has "
+                         f"sample_count = {count}; give it >= 1 (or render with spp >= 1: "
+                         f"mi.render's spp, or --spp for a scene file that takes $spp)")
 
 
 def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool = True):
     """Refuse a scene photon mapping cannot render: no emitter (nothing would be lit) or,
-    when ``needs_sensor``, no sensor. The one check every entry point makes."""
+    when ``needs_sensor``, no sensor or a first sensor whose film has no pixel or whose
+    sampler takes no sample (:func:`check_sensor`). The one check every entry point makes."""
     what = "the scene" if name is None else f"scene {name!r}"
     _repair_infinite_emitters(scene, name)
     if not scene.emitters():
