@@ -125,6 +125,8 @@ def test_a_render_with_a_sample_count_of_0_is_refused_not_a_crash():
     (["converge", "cornell_box", "--time", "1", "--out", "{tmp}/file/out"],
      r"--out '.*/file/out' cannot be made: '.*/file' is a file"),
     (["speedup", "cornell_box", "--out", "{tmp}/file/out"], r"--out .* is a file"),
+    (["speedup", "cornell_box", "--maps", "4,2,2", "--out", "{tmp}/new"],
+     r"--maps lists 2 more than once"),
     (["render", "cornell_box", "-o", "{tmp}/file/x.exr"],
      r"-o '.*/file/x.exr' cannot be written: '.*/file' is a file, not a folder"),
     (["bench", "--smoke", "--out", "{tmp}/file/b.json"], r"--out .* is a file, not a folder"),
@@ -145,6 +147,18 @@ def test_cli_refuses_outputs_and_inputs_it_cannot_use_before_any_work(tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("partpm: error:") and __import__("re").search(message, err), err
     assert not (tmp_path / "new").exists()
+
+
+def test_a_scene_whose_box_is_repaired_is_warned_about_once(tmp_path, caplog, monkeypatch):
+    """caustic_glass's shapes share a BSDF, so Mitsuba leaves its box invalid: the command
+    line checks the scene by name and the render checks it again, and the warning came
+    twice."""
+    import mi_partpm.scenes as scenes
+    monkeypatch.setattr(scenes, "_WARNED", set())
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        assert main(["render", "caustic_glass", "--photons", "2000", "--resolution", "8x8",
+                     "-o", str(tmp_path / "x.exr")]) == 0
+    assert sum("bounding box of" in r.getMessage() for r in caplog.records) == 1
 
 
 def test_resolution_for_a_scene_without_resx_says_so(tmp_path, capsys):

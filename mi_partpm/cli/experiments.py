@@ -94,6 +94,10 @@ def run_speedup(args) -> int:
         return 0
     from ..experiments.speedup import format_speedup, run_speedup
     maps = int_list("--maps", args.maps)
+    twice = sorted({n for n in maps if maps.count(n) > 1})
+    if twice:
+        raise UsageError(f"--maps lists {', '.join(map(str, twice))} more than once: give "
+                         f"each map count once")
     check_scene_name(args.scene)
     check_folder(args.out, "--out")
     try:

@@ -161,7 +161,8 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
     infinity (environment, directional, sun) would emit their photons from the wrong sphere
     (from a point, for an invalid box): they are pointed at the sphere around the shapes'
     true box (at every call: a freed scene's id and box may come back), with a warning once
-    per scene name and box."""
+    per box (a command that checks the scene by name and the render that checks it again
+    warn once)."""
     if not scene.shapes():
         return
     true_box = scene_bounds(scene)
@@ -170,7 +171,7 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
     infinite = [e for e in scene.emitters()
                 if mi.has_flag(e.flags(), mi.EmitterFlags.Infinite)]
     what = "the scene" if name is None else f"scene {name!r}"
-    key = (what, str(true_box))
+    key = str(true_box)
     if key not in _WARNED:             # the repair itself is made every time: it is cheap
         _WARNED.add(key)
         log.warning("Mitsuba's bounding box of %s leaves out shapes (it merged shapes that "
@@ -186,7 +187,7 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
             emitter.set_scene(stand_in)
 
 
-#: (scene name, box) pairs already warned about.
+#: The boxes already warned about.
 _WARNED = set()
 
 
