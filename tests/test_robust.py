@@ -161,6 +161,20 @@ def test_a_scene_whose_box_is_repaired_is_warned_about_once(tmp_path, caplog, mo
     assert sum("bounding box of" in r.getMessage() for r in caplog.records) == 1
 
 
+def test_a_data_folder_for_a_scene_that_reads_none_is_said_to_be_unused(tmp_path, caplog,
+                                                                       monkeypatch):
+    """--data (data_dir) was ignored in silence for scenes that read no data file."""
+    import mi_partpm.scenes as scenes
+    monkeypatch.setattr(scenes, "_UNUSED_DATA_WARNED", set())
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        mi_partpm.load_scene("cornell_box", resolution=(8, 8), data_dir=tmp_path)
+    assert "is not used: scene 'cornell_box' reads no data file" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        mi_partpm.load_scene("cornell_box", resolution=(8, 8))
+    assert "is not used" not in caplog.text
+
+
 def test_resolution_for_a_scene_without_resx_says_so(tmp_path, capsys):
     path = tmp_path / "fixed.xml"
     path.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')

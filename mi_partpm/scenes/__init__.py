@@ -39,6 +39,10 @@ _HERE = Path(__file__).resolve().parent
 SCENE_DATA = {"happy_buddha": {"mesh": "happy_buddha_20k.ply"}}
 
 
+#: Scenes already warned about for a data folder they do not read.
+_UNUSED_DATA_WARNED = set()
+
+
 def scene_names():
     """Names of the built-in scenes."""
     return sorted(p.stem for p in _HERE.glob("*.xml"))
@@ -100,6 +104,12 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
                             or spp < 1):
         raise ValueError(f"spp must be an integer >= 1, got {spp!r}")
     path = scene_path(scene)
+    unused = data_dir is not None and not (path.parent == _HERE and path.stem in SCENE_DATA)
+    if unused and str(scene) not in _UNUSED_DATA_WARNED:    # once per scene (compare loads
+        _UNUSED_DATA_WARNED.add(str(scene))                   # its scene more than once)
+        log.warning("the data folder (--data, data_dir) %s is not used: scene %r reads no data "
+                    "file (the scenes that do: %s)", str(data_dir), str(scene),
+                    ", ".join(sorted(SCENE_DATA)))
     if path.parent == _HERE:
         for param, name in SCENE_DATA.get(path.stem, {}).items():
             if param not in params:
