@@ -12,6 +12,7 @@ call the same checks, so a bad value reads the same everywhere.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Optional
 
@@ -44,7 +45,7 @@ GLOSSY_MODES = ("map", "trace")
 
 def segment_limit(max_depth: int) -> int:
     """The loop bound of a path of at most ``max_depth`` segments (-1: effectively none)."""
-    return 2**31 - 1 if max_depth == UNLIMITED_DEPTH else int(max_depth)
+    return INT32_MAX if max_depth == UNLIMITED_DEPTH else int(max_depth)
 
 
 def _range_text(low, high) -> str:
@@ -63,9 +64,10 @@ INT32_MAX = 2**31 - 1
 
 def check_int(name: str, value, low: Optional[int] = None, high: Optional[int] = None,
               allowed: str = "") -> int:
-    """``value`` as an int in [low, high]; ``allowed`` replaces the range in the message."""
+    """``value`` (a Python or NumPy integer) as an int in [low, high]; ``allowed`` replaces
+    the range in the message."""
     what = allowed or _range_text(low, high)
-    if isinstance(value, bool) or not isinstance(value, int):
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         raise ValueError(f"{name} must be an integer {what}, got {value!r}")
     if (low is not None and value < low) or (high is not None and value > high):
         raise ValueError(f"{name} must be an integer {what}, got {value}")

@@ -165,7 +165,7 @@ def test_a_data_folder_for_a_scene_that_reads_none_is_said_to_be_unused(tmp_path
                                                                        monkeypatch):
     """--data (data_dir) was ignored in silence for scenes that read no data file."""
     import mi_partpm.scenes as scenes
-    monkeypatch.setattr(scenes, "_UNUSED_DATA_WARNED", set())
+    monkeypatch.setattr(scenes, "_WARNED", set())
     with caplog.at_level("WARNING", logger="mi_partpm"):
         mi_partpm.load_scene("cornell_box", resolution=(8, 8), data_dir=tmp_path)
     assert "is not used: scene 'cornell_box' reads no data file" in caplog.text

@@ -24,9 +24,9 @@ from typing import Optional, Tuple
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from ..data import find_data_file
+from ..props import check_int
 
 log = logging.getLogger("mi_partpm")
 
@@ -37,10 +37,6 @@ _HERE = Path(__file__).resolve().parent
 
 #: Built-in scene -> {scene parameter: data file it names}.
 SCENE_DATA = {"happy_buddha": {"mesh": "happy_buddha_20k.ply"}}
-
-
-#: Scenes already warned about for a data folder they do not read.
-_UNUSED_DATA_WARNED = set()
 
 
 def scene_names():
@@ -94,22 +90,22 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
         or ``spp`` is not made of integers >= 1.
     """
     if resolution is not None:
-        ok = isinstance(resolution, (tuple, list)) and len(resolution) == 2 and all(
-            isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1
-            for v in resolution)
-        if not ok:
+        try:
+            if not isinstance(resolution, (tuple, list)) or len(resolution) != 2:
+                raise ValueError
+            for v in resolution:
+                check_int("resolution", v, low=1)
+        except ValueError:
             raise ValueError(f"resolution must be (width, height), two integers >= 1, got "
-                             f"{resolution!r}")
-    if spp is not None and (not isinstance(spp, (int, np.integer)) or isinstance(spp, bool)
-                            or spp < 1):
-        raise ValueError(f"spp must be an integer >= 1, got {spp!r}")
+                             f"{resolution!r}") from None
+    if spp is not None:
+        check_int("spp", spp, low=1)
     path = scene_path(scene)
-    unused = data_dir is not None and not (path.parent == _HERE and path.stem in SCENE_DATA)
-    if unused and str(scene) not in _UNUSED_DATA_WARNED:    # once per scene (compare loads
-        _UNUSED_DATA_WARNED.add(str(scene))                   # its scene more than once)
-        log.warning("the data folder (--data, data_dir) %s is not used: scene %r reads no data "
-                    "file (the scenes that do: %s)", str(data_dir), str(scene),
-                    ", ".join(sorted(SCENE_DATA)))
+    if data_dir is not None and not (path.parent == _HERE and path.stem in SCENE_DATA):
+        # Once per scene: compare loads its scene more than once.
+        _warn_once(("data", str(scene)), "the data folder (--data, data_dir) %s is not used: "
+                   "scene %r reads no data file (the scenes that do: %s)", str(data_dir),
+                   str(scene), ", ".join(sorted(SCENE_DATA)))
     if path.parent == _HERE:
         for param, name in SCENE_DATA.get(path.stem, {}).items():
             if param not in params:
@@ -181,13 +177,11 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
     infinite = [e for e in scene.emitters()
                 if mi.has_flag(e.flags(), mi.EmitterFlags.Infinite)]
     what = "the scene" if name is None else f"scene {name!r}"
-    key = str(true_box)
-    if key not in _WARNED:             # the repair itself is made every time: it is cheap
-        _WARNED.add(key)
-        log.warning("Mitsuba's bounding box of %s leaves out shapes (it merged shapes that "
-                    "share a BSDF into a mesh without a box): photon mapping uses the box of "
-                    "their vertices, %s to %s%s", what, list(true_box.min), list(true_box.max),
-                    ", also for the emitters at infinity" if infinite else "")
+    # The repair itself is made every time (it is cheap), the warning once per box.
+    _warn_once(("box", str(true_box)), "Mitsuba's bounding box of %s leaves out shapes (it "
+               "merged shapes that share a BSDF into a mesh without a box): photon mapping "
+               "uses the box of their vertices, %s to %s%s", what, list(true_box.min),
+               list(true_box.max), ", also for the emitters at infinity" if infinite else "")
     if infinite:
         centre, half = true_box.center(), true_box.extents() * 0.5
         stand_in = mi.load_dict({"type": "scene", "box": {
@@ -197,8 +191,15 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
             emitter.set_scene(stand_in)
 
 
-#: The boxes already warned about.
+#: The warnings given once per process, by key (what they are about).
 _WARNED = set()
+
+
+def _warn_once(key, message: str, *args):
+    """``log.warning(message, *args)`` the first time ``key`` comes, and never again."""
+    if key not in _WARNED:
+        _WARNED.add(key)
+        log.warning(message, *args)
 
 
 def _sensor_name(sensor) -> str:
@@ -213,10 +214,7 @@ def check_sensor(sensor, what: str = "the scene", spp: int = 0):
     if min(size) < 1:
         raise ValueError(f"{what}: the film of sensor {_sensor_name(sensor)} is {size[0]} x {size[1]} "
                          f"pixels; its width and height must be >= 1")
-    if spp:
-        if spp < 1:
-            raise ValueError(f"spp must be an integer >= 1 (or 0: the sampler's own count), "
-                             f"got {spp}")
+    if spp:                   # (mi.render's spp is unsigned: a nonzero one is >= 1)
         return
     count = int(sensor.sampler().sample_count())
     if count < 1:
