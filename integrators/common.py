@@ -483,9 +483,10 @@ class PhotonMapper(mi.SamplingIntegrator):
         asked = self.stop_requested is not None and bool(self.stop_requested())
         stop = (timed_out or asked) and done < self.passes
         if self.passes > 1:
-            # Every process of the render stops after the same pass (the root's clock and
-            # request say which), or one would wait in the next pass's gather for ever:
-            # asked after every pass, so every process asks as often whatever it was told.
+            # Every process of the render stops after the same pass (the first whose clock
+            # or request says so on any process), or one would wait in the next pass's
+            # gather for ever: asked after every pass, so every process asks as often
+            # whatever it was told.
             stop = self.backend.agree(stop)
         info["last"] = stop or done == self.passes
         if self.passes > 1:
@@ -495,7 +496,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                 f"at most {self.passes} in {self.time_limit:g} s" \
                 if self.passes < UNTIL_TIME_LIMIT else f"as many as fit in {self.time_limit:g} s"
             ending = (", stopped as asked" if asked else ", time limit reached" if timed_out
-                      else ", stopped with the root process") if stop \
+                      else ", stopped with another process") if stop \
                 else f", about {info['eta']:.0f} s left"
             log.info("pass %d of %s: %d photons so far%s, %.1f s elapsed%s", done, of,
                      info["photons"], radius, elapsed, ending)

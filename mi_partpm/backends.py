@@ -27,7 +27,7 @@ from pathlib import Path
 import drjit as dr
 import numpy as np
 
-__all__ = ["launcher_ranks", "run_as_one_job", "abort_job",
+__all__ = ["launcher_ranks", "run_as_one_job", "abort_job", "report_error",
            "Backend", "LocalBackend", "MPIBackend", "make_backend", "BACKENDS", "comm_world",
            "owned_maps", "check_ranks", "allreduce_arrays", "abort_on_error",
            "share_cores", "find_mpiexec", "MPIUnavailable"]
@@ -71,12 +71,16 @@ def share_cores(comm) -> int:
     return threads
 
 
+#: Words of the one error that every rank of a job raises alike (:func:`check_ranks`).
+EVERY_RANK_FAILS = "every rank owns at least one map"
+
+
 def check_ranks(ranks: int, map_count: int):
     """P must not exceed n: a rank without a map would have nothing to do."""
     if ranks > map_count:
-        raise ValueError(f"the MPI job has {ranks} ranks but map_count is {map_count}: every "
-                         f"rank owns at least one map, so use at most {map_count} ranks or "
-                         f"raise map_count to >= {ranks}")
+        raise ValueError(f"the MPI job has {ranks} ranks but map_count is {map_count}: "
+                         f"{EVERY_RANK_FAILS}, so use at most {map_count} ranks or raise "
+                         f"map_count to >= {ranks}")
 
 
 def owned_maps(rank: int, ranks: int, map_count: int) -> np.ndarray:
@@ -89,28 +93,58 @@ def abort_job(comm, message, code: int = 1):
     own), give mpiexec a moment to forward it, abort, and exit (where the abort returns
     before it ends this process)."""
     if message:
-        print(f"partpm: error on MPI rank {comm.rank} of {comm.size}: {message}",
-              file=sys.stderr, flush=True)
+        report_error(comm, message)
     time.sleep(1.0)
     comm.Abort(code)
     os._exit(code)
 
 
+def report_error(comm, message: str):
+    """Print ``partpm: error[ on MPI rank j of P]: message`` on standard error, as one write
+    (the lines of ranks that fail at once ran together when the newline was written apart),
+    except on ranks other than 0 for the error that every rank raises alike
+    (:func:`check_ranks`: found by its words, as Mitsuba passes an integrator's error on as a
+    new exception with the same text), so the job says it once."""
+    where = "" if comm is None else f" on MPI rank {comm.rank} of {comm.size}"
+    if comm is not None and comm.rank != 0 and EVERY_RANK_FAILS in message:
+        return
+    sys.stderr.flush()
+    line = f"partpm: error{where}: {message}\n".encode("utf-8", "replace")
+    try:
+        os.write(sys.stderr.fileno(), line)
+    except (AttributeError, OSError, ValueError):    # a standard error without a descriptor
+        sys.stderr.write(line.decode("utf-8"))
+        sys.stderr.flush()
+
+
 def _message(e: BaseException) -> str:
+    if isinstance(e, KeyboardInterrupt):
+        return "interrupted (Ctrl-C): the job stops at once, with no image"
+    if isinstance(e, SystemExit):
+        return f"the rank exited (SystemExit {e.code!r}) during the render"
     return str(e) if type(e).__name__ == "UsageError" else \
         traceback.format_exception_only(type(e), e)[-1].strip()
+
+
+def _exit_code(e: BaseException, default: int) -> int:
+    if isinstance(e, KeyboardInterrupt):
+        return 130
+    if isinstance(e, SystemExit) and isinstance(e.code, int) and e.code:
+        return e.code
+    return default
 
 
 @contextmanager
 def abort_on_error(comm):
     """Turn an exception on one rank into an abort of the whole job with that rank's message.
 
-    Without it the other ranks would wait in the reduction forever.
+    Without it the other ranks would wait in the reduction forever: so also for
+    ``SystemExit`` (``sys.exit`` in a callback) and ``KeyboardInterrupt``.
     """
     try:
         yield
-    except Exception as e:   # noqa: BLE001  (any failure must end the job)
-        abort_job(comm, _message(e), 1)
+    except (Exception, SystemExit, KeyboardInterrupt) as e:   # noqa: BLE001
+        abort_job(comm, _message(e), _exit_code(e, 1))
 
 
 #: Variables that MPI launchers set in every rank's environment, with the job's rank count
@@ -143,8 +177,8 @@ def run_as_one_job(comm, argv, run) -> int:
         code = run()
     except SystemExit as e:      # argparse has printed its message
         code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-    except Exception as e:   # noqa: BLE001  (any failure must end the job)
-        abort_job(comm, _message(e), 2)
+    except (Exception, KeyboardInterrupt) as e:   # noqa: BLE001  (any failure ends the job)
+        abort_job(comm, _message(e), _exit_code(e, 2))
     if code:
         abort_job(comm, None, code)         # the rank has said why
     return 0
@@ -191,7 +225,8 @@ class Backend:
         return values
 
     def agree(self, stop: bool) -> bool:
-        """Whether every process stops after this pass: the root's ``stop``."""
+        """Whether every process stops after this pass: any process's ``stop`` (its time
+        limit, or a Ctrl-C it received)."""
         return stop
 
     def collect(self, stats: dict) -> dict:
@@ -238,7 +273,8 @@ class MPIBackend(Backend):
         return out
 
     def agree(self, stop: bool) -> bool:
-        return bool(self.comm.bcast(bool(stop), root=0))
+        from mpi4py import MPI
+        return bool(self.comm.allreduce(bool(stop), op=MPI.LOR))
 
     def collect(self, stats: dict) -> dict:
         stats.update(rank=self.comm.rank, ranks=None)

@@ -115,14 +115,32 @@ def test_mpi_more_ranks_than_maps_is_a_clear_error(tmp_path):
                 "--resolution", "8x8", "--backend", "mpi", "-o", str(tmp_path / "x.exr"))
     assert done.returncode != 0
     assert "the MPI job has 3 ranks but map_count is 2" in done.stderr
+    # Every rank finds it; rank 0 alone says it (three copies ran together before).
+    assert done.stderr.count("the MPI job has 3 ranks") == 1, done.stderr
 
 
-def test_a_failing_rank_aborts_the_job_with_its_message():
-    done = _mpi(2, str(HERE / "mpi_scripts" / "failing_rank.py"), timeout=120)
+@pytest.mark.parametrize("how, said", [
+    ("error", "error on MPI rank 1 of 2: MemoryError: cannot allocate the photon map "
+              "(simulated)"),
+    ("exit", "error on MPI rank 1 of 2: the rank exited (SystemExit 3) during the render"),
+    ("interrupt", "error on MPI rank 1 of 2: interrupted (Ctrl-C)")])
+def test_a_failing_rank_aborts_the_job_with_its_message(how, said):
+    """An exception on one rank ends the job, and so do sys.exit and KeyboardInterrupt
+    there: those two passed by the abort before, and the other rank waited in the
+    reduction until killed."""
+    done = _mpi(2, str(HERE / "mpi_scripts" / "failing_rank.py"), how, timeout=120)
     assert done.returncode != 0
-    assert "error on MPI rank 1 of 2" in done.stderr
-    assert "cannot allocate the photon map (simulated)" in done.stderr
+    assert said in done.stderr, done.stderr[-2000:]
     assert "finished" not in done.stdout
+
+
+def test_a_stop_asked_on_any_rank_stops_every_rank_after_the_same_pass():
+    """A stop asked on rank 1 alone (a Ctrl-C sent to it) stops the job after that pass;
+    only rank 0's was heard before, so the job said it would stop and ran all its passes."""
+    done = _mpi(2, str(HERE / "mpi_scripts" / "stopping_rank.py"), timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    line = next(x for x in done.stdout.splitlines() if x.startswith("passes per rank:"))
+    assert line.split(":")[1].split() == ["3", "3"], line
 
 
 def _mpmd(first, second, timeout=120):

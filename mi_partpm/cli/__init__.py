@@ -65,8 +65,8 @@ def _main(argv, comm=None) -> int:
     try:
         return COMMANDS[args.command](args)
     except UsageError as e:
-        where = f" on MPI rank {rank} of {comm.size}" if comm is not None else ""
-        print(f"partpm: error{where}: {e}", file=sys.stderr)
+        from ..backends import report_error
+        report_error(comm, str(e))
         return 2
     except BaseException as e:      # Ctrl-C, also where Mitsuba wrapped it in its own error
         if not interrupted(e):
