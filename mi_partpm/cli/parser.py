@@ -71,7 +71,7 @@ def _render_options(sub):
                    help="search radius in world units (partpm)")
     g.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
                    help="radius as a fraction of the scene's longest side (default 0.05; "
-                        "0.025 with --passes > 1)")
+                        "0.025 for a progressive render: --passes > 1 or --time)")
     r.add_argument("--max-radius", type=positive_float("--max-radius"),
                    help="cap of the kNN radius (pm; default: none)")
     r.add_argument("--max-depth", type=int,

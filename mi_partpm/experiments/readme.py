@@ -317,10 +317,12 @@ def format_scaling(results: dict, step: str = "scaling_cornell_box") -> str:
     rows = [[r["ranks"], f"{r['time_render']:.2f}", f"{r['speedup']:.2f}",
              f"{r['efficiency']:.2f}", f"{r['time_trace_max']:.2f}",
              f"{r['time_build_max']:.2f}", f"{r['time_estimate_max']:.2f}",
-             f"{r['time_reduce'] * 1e3:.1f}", f"{r['reduce_bytes_per_rank'] / 1e3:.0f}"]
+             f"{r['time_reduce'] * 1e3:.1f}", f"{r['reduce_bytes_per_rank'] / 1e3:.0f}",
+             f"{r['max_rel_diff_vs_first']:.1e}"]
             for r in results[step]]
     return _table(["P", "render s", "speedup", "efficiency", "trace s", "build s",
-                   "estimate s", "reduce ms", "reduce KB per rank"], "lrrrrrrrr", rows)
+                   "estimate s", "reduce ms", "reduce KB per rank",
+                   "image vs P = 1, largest relative difference"], "lrrrrrrrrr", rows)
 
 
 #: The methods of ``partpm converge`` as the table names them.
