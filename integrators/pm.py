@@ -42,7 +42,7 @@ class PMIntegrator(PhotonMapper):
          - Description
        * - k
          - |int|
-         - Photons per estimate, in [2, photon_count], at most 16384. (Default: 50)
+         - Photons per estimate, in [2, photon_count], at most 16383. (Default: 50)
        * - count_kth
          - |boolean|
          - Count the k-th photon, which lies on the circle of radius r, as eq. (1) and

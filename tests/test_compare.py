@@ -161,10 +161,10 @@ def test_pm_max_radius_with_fewer_than_k_photons_uses_max_radius():
 
 
 @pytest.mark.parametrize("props, message", [
-    ({"k": 0}, r"k must be an integer in \[2, 16384\] .* got 0"),
-    ({"k": 1}, r"k must be an integer in \[2, 16384\] .* got 1"),
+    ({"k": 0}, r"k must be an integer in \[2, 16383\] .* got 0"),
+    ({"k": 1}, r"k must be an integer in \[2, 16383\] .* got 1"),
     ({"photon_count": 1000, "k": 1}, r"k must be an integer in \[2, photon_count = 1000\], got 1"),
-    ({"photon_count": 10**6, "k": 20000}, r"k must be an integer in \[2, 16384\] \(the most"),
+    ({"photon_count": 10**6, "k": 20000}, r"k must be an integer in \[2, 16383\] \(the most"),
     ({"count_kth": "yes"}, r"count_kth"),
     ({"max_radius": 1e30}, r"max_radius must be a finite number in \[1e-18, 1e\+18\]"),
     ({"photon_count": 10, "k": 11}, r"k must be .* got 11"),

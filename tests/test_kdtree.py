@@ -270,10 +270,24 @@ def test_knn_on_traced_photons_and_degenerate_sets():
 
 def test_knn_rejects_bad_k():
     forest = build_forest(np.zeros((4, 3)))
-    with pytest.raises(ValueError, match=r"k must be an integer in \[1, 16384\], got 0"):
+    with pytest.raises(ValueError, match=r"k must be an integer in \[1, 16383\], got 0"):
         knn_query(forest, mi.Point3f(0, 0, 0), 0)
-    with pytest.raises(ValueError, match=r"k must be an integer in \[1, 16384\], got 70000"):
-        knn_neighbours(forest, np.zeros((1, 3)), 70_000)
+    with pytest.raises(ValueError, match=r"k must be an integer in \[1, 16383\], got 16384"):
+        knn_neighbours(forest, np.zeros((1, 3)), 16384)
+
+
+@pytest.mark.parametrize("order, queries", [("given", 10), ("morton", 4100)])
+def test_knn_at_the_largest_k_answers_as_scipy(order, queries):
+    """The largest k the query takes runs on both walks: it was one too many for Dr.Jit's
+    local arrays (65536 entries) and failed in the grouped walk (the given order, or 4096
+    queries or more in Morton order) instead of answering."""
+    from mi_partpm.kdtree.knn import MAX_K
+    rng = np.random.default_rng(3)
+    points, q = rng.random((MAX_K + 500, 3)), rng.random((queries, 3))
+    result = knn_query(build_forest(points), q, MAX_K, order=order)
+    assert (result.count.numpy() == MAX_K).all()
+    kth, _ = cKDTree(points).query(q, [MAX_K])
+    np.testing.assert_allclose(np.sqrt(result.radius2.numpy()), kth[:, 0], rtol=1e-5)
 
 
 def _call(kind, forest, q, **kw):

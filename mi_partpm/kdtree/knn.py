@@ -31,9 +31,9 @@ __all__ = ["knn_query", "KnnResult", "knn_neighbours", "KNN_KEEP", "KNN_REACH", 
 #: The grouped walk keeps up to this many times k of the photons within a lane's bound; a
 #: lane that finds more is walked again on its own.
 KNN_KEEP = 4
-#: The largest k: Dr.Jit's local arrays hold at most 65536 entries, and a grouped walk keeps
-#: up to KNN_KEEP x k candidates per query.
-MAX_K = 65536 // KNN_KEEP
+#: The largest k: Dr.Jit's local arrays hold fewer than 65536 entries (65536 is refused), and
+#: a grouped walk keeps up to KNN_KEEP x k candidates per query.
+MAX_K = 65536 // KNN_KEEP - 1
 
 #: A member's ball in the grouped walk: a leader's k-th distance plus this share of the way
 #: to it. With 1 (and an accept test the same for every lane) the ball surely holds k
