@@ -70,8 +70,8 @@ class PartPMIntegrator(PhotonMapper):
            N/n photons (sizes differ by at most one) from its own random stream. (Default: 1)
        * - radius
          - |float|
-         - Fixed (initial) search radius r in world units, in [1e-18, 1e18] (r^2 must be a
-           finite, normal float32). (Default: unset, see radius_fraction)
+         - Fixed (initial) search radius r in world units, in [1e-15, 1e18] (squared
+           distances must be resolved in float32). (Default: unset, see radius_fraction)
        * - radius_fraction
          - |float|
          - r as a fraction of the longest side of the scene's bounding box, in (0, 1]; the
@@ -129,7 +129,7 @@ class PartPMIntegrator(PhotonMapper):
            (L {S|G}+ D: the caustic under a rough glass sphere). (Default: 0)
        * - caustic_radius, caustic_radius_fraction
          - |float|
-         - The caustic maps' (initial) radius in world units, in [1e-18, 1e18], or as a
+         - The caustic maps' (initial) radius in world units, in [1e-15, 1e18], or as a
            fraction of the scene's longest side, in (0, 1]; one of the two. (Default: a
            quarter of the global radius)
        * - glossy

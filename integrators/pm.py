@@ -51,7 +51,7 @@ class PMIntegrator(PhotonMapper):
            weigh it 0 either way). (Default: true)
        * - max_radius
          - |float|
-         - Only photons within this distance are searched, in [1e-18, 1e18]; where fewer than k lie
+         - Only photons within this distance are searched, in [1e-15, 1e18]; where fewer than k lie
            within it, r = max_radius (Jensen's cap). (Default: unset, no cap)
 
     After a render, ``stats["mean_knn_radius"]`` is the mean r over all estimates, and

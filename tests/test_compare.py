@@ -166,10 +166,10 @@ def test_pm_max_radius_with_fewer_than_k_photons_uses_max_radius():
     ({"photon_count": 1000, "k": 1}, r"k must be an integer in \[2, photon_count = 1000\], got 1"),
     ({"photon_count": 10**6, "k": 20000}, r"k must be an integer in \[2, 16383\] \(the most"),
     ({"count_kth": "yes"}, r"count_kth"),
-    ({"max_radius": 1e30}, r"max_radius must be a finite number in \[1e-18, 1e\+18\]"),
+    ({"max_radius": 1e30}, r"max_radius must be a finite number in \[1e-15, 1e\+18\]"),
     ({"photon_count": 10, "k": 11}, r"k must be .* got 11"),
     ({"k": 2.5}, r"k must be an integer .* got 2.5"),
-    ({"max_radius": 0.0}, r"max_radius must be a finite number in \[1e-18, 1e\+18\], got 0.0"),
+    ({"max_radius": 0.0}, r"max_radius must be a finite number in \[1e-15, 1e\+18\], got 0.0"),
     ({"max_radius": float("nan")}, r"max_radius .* got nan"),
     ({"radius": 0.1}, r"radius"),               # pm has no fixed radius: an unknown prop
     ({"map_count": 4}, r"map_count"),           # pm has one map

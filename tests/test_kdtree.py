@@ -308,11 +308,26 @@ def _call(kind, forest, q, **kw):
     (lambda pts: knn_neighbours(build_forest(pts), pts[:5].T, 2),
      r"points must have shape \(N, 3\), got \(3, 5\)"),
     (lambda pts: _call("radius", build_forest(pts), pts[:5], r=-0.3),
-     r"r must be 0 or in \[1e-18, inf\] \(inf for no bound\), got -0.3"),
-    (lambda pts: _call("radius", build_forest(pts * 1e-18), pts[:5] * 1e-18, r=5e-20),
-     r"r must be 0 or in \[1e-18, inf\] \(inf for no bound\), got 5e-20"),
+     r"r must be 0 or in \[1e-15, inf\] \(inf for no bound\), got -0.3"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:5], r=5e-16),
+     r"r must be 0 or in \[1e-15, inf\] \(inf for no bound\), got 5e-16"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:5], r=10**400),
+     r"r must be 0 or in \[1e-15, inf\] \(inf for no bound\), got an integer too large"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:10], r=np.ones((2, 5))),
+     r"r must be a number or one per query point \(shape \(Q,\)\), got shape \(2, 5\)"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:10], active=np.ones(10) / 2),
+     r"active must be true or false, or one bool per query point"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:5], maps=(0.5, 1.7)),
+     r"maps must be \(first, stop\) with 0 <= first <= stop <= map_count = 1, got \(0.5"),
+    (lambda pts: _call("knn", build_forest(pts), pts[:5], maps=(True, 1)),
+     r"maps must be \(first, stop\)"),
+    (lambda pts: build_forest(pts, leaf_size=True), r"leaf_size must be an integer >= 1, got True"),
+    (lambda pts: build_forest(pts + 1j), r"points must be real numbers of shape \(N, 3\)"),
+    (lambda pts: build_forest(pts * 1e-18),
+     r"photon positions span 9.\d+e-19 \(the longest side of their bounding box\), less "
+     r"than 1e-12"),
     (lambda pts: _call("radius", build_forest(pts), pts[:5], r="0.1"),
-     r"r must be a number or one per query point, got '0.1'"),
+     r"r must be a number or one per query point \(shape \(Q,\)\), got '0.1'"),
     (lambda pts: _call("radius", build_forest(pts), pts[:5], maps=2),
      r"maps must be \(first, stop\) with 0 <= first <= stop <= map_count = 1, got 2"),
     (lambda pts: build_forest(pts * 3e19),
@@ -338,7 +353,7 @@ def _call(kind, forest, q, **kw):
      r"r has 2 entries for 5 query points"),
     (lambda pts: _call("knn", build_forest(pts), pts[:5], max_radius=mi.Float([0.1, -1, 0, 0,
                                                                                 0])),
-     r"max_radius must be 0 or in \[1e-18, inf\]"),
+     r"max_radius must be 0 or in \[1e-15, inf\]"),
     (lambda pts: _call("knn", build_forest(pts), pts[:5], active=mi.Bool([True, False])),
      r"active has 2 entries for 5 query points"),
     (lambda pts: _call("radius", build_forest(pts), np.array([[0, 0, np.nan]])),
@@ -356,6 +371,45 @@ def test_bad_input_names_the_argument(make, message):
         make(pts)
 
 
+def test_the_least_radius_finds_what_scipy_finds():
+    """At the least radius (1e-15) the photons found are scipy's, to float32 rounding: a
+    cluster 1e-13 wide inside a cloud of size 1 (queries in the cluster). At 1e-18, where
+    squared coordinate differences flush to zero, photons up to 1.0001 r were found (1124
+    of 3000 queries differed from scipy)."""
+    from mi_partpm.kdtree.radius import MIN_RADIUS
+    rng = np.random.default_rng(0)
+    cluster = (0.5 + rng.random((20000, 3)) * 1e-13).astype(np.float32)
+    points = np.concatenate([cluster, rng.random((100, 3)).astype(np.float32)])
+    q = (0.5 + rng.random((500, 3)) * 1e-13).astype(np.float32)
+    found = radius_query(build_forest(points), q, MIN_RADIUS,
+                         lambda i, d2, a, s: mi.Float(1.0)).numpy()
+    ref = cKDTree(points.astype(np.float64)).query_ball_point(
+        q.astype(np.float64), MIN_RADIUS, return_length=True)
+    assert found.sum() > 0
+    assert np.abs(found - ref).sum() <= 2, (found.sum(), ref.sum())   # boundary rounding
+
+
+def test_an_empty_forest_refuses_what_a_full_one_refuses():
+    """The checks of order and maps come before an empty forest's answer of zeros."""
+    empty = build_forest(np.zeros((0, 3)), map_count=5)
+    q = np.random.default_rng(0).random((2, 3))
+    with pytest.raises(ValueError, match=r"maps must be \(first, stop\) with 0 <= first <= "
+                                         r"stop <= map_count = 5, got \(1, 9\)"):
+        radius_query(empty, q, 0.3, lambda i, d2, a, s: mi.Float(1.0), maps=(1, 9))
+    with pytest.raises(ValueError, match=r"order must be one of"):
+        radius_query(empty, q, 0.3, lambda i, d2, a, s: mi.Float(1.0), order="bogus")
+    with pytest.raises(ValueError, match=r"maps must be \(first, stop\)"):
+        knn_query(empty, q, 3, maps=(0, 9))
+
+
+def test_tree_bytes_refuses_negative_counts():
+    from mi_partpm.kdtree import tree_bytes
+    with pytest.raises(ValueError, match=r"counts must be >= 0 and leaf_size >= 1"):
+        tree_bytes([-5])
+    with pytest.raises(ValueError, match=r"counts must be >= 0 and leaf_size >= 1"):
+        tree_bytes([100], 0)
+
+
 def test_a_forest_is_asked_for_by_name():
     with pytest.raises(TypeError, match=r"forest must be a Forest \(made by build_forest\), "
                                         r"got ndarray"):
@@ -367,14 +421,14 @@ def test_a_forest_is_asked_for_by_name():
 def test_payloads_as_integers_and_the_extremes_of_scale():
     """A payload of NumPy integers is kept as a mi.UInt32 one is; the coordinates and radii
     at the ends of the accepted range give scipy's answers (points up to 1e18 apart in
-    magnitude, a radius of 1e-18 among points 1e-17 apart); an empty forest has no points
+    magnitude, points that span the least extent, 1e-12); an empty forest has no points
     and reports a radius of 0 (not inf) where it finds nothing without a cap."""
     rng = np.random.default_rng(3)
     pts = rng.random((300, 3))
     codes = rng.integers(0, 1 << 31, 300).astype(np.uint32)
     a, b = build_forest(pts, payload=codes), build_forest(pts, payload=mi.UInt32(codes))
     np.testing.assert_array_equal(a.records.numpy(), b.records.numpy())
-    for scale, r in ((1e18 / 2, 1e17), (1e-17, 1e-18)):
+    for scale, r in ((1e18 / 2, 1e17), (1.02e-12, 1e-13)):
         p, q = pts * scale, rng.random((50, 3)) * scale
         found = radius_query(build_forest(p), q, r, lambda i, d2, a, s: mi.Float(1.0)).numpy()
         assert found.tolist() == cKDTree(p).query_ball_point(q, r, return_length=True).tolist()
@@ -908,3 +962,22 @@ def test_photon_maps_read_each_photons_power_and_direction():
     if power_floats() == POWER_FLOATS:                  # RGB: three channels and the pad
         assert record_bytes() == 32
         assert maps.power.numpy().reshape(-1, POWER_FLOATS)[:, 3].max() == 0
+
+
+@pytest.mark.parametrize("kind", ["radius", "knn"])
+def test_a_contribution_of_another_type_names_result_type(kind):
+    """A contribution that returns a colour for a scalar total is a TypeError that says to
+    pass result_type; Dr.Jit's loop said only that its state changed type."""
+    from mi_partpm.kdtree.radius import ResultTypeError
+    forest = build_forest(np.random.default_rng(0).random((200, 3)))
+    colour = lambda i, d2, a, s: mi.Color3f(1.0)      # noqa: E731
+    with pytest.raises(ResultTypeError, match=r"contribution returned Color3f, which "
+                                              r"result_type = Float cannot hold: pass "
+                                              r"result_type=Color3f"):
+        if kind == "radius":
+            radius_query(forest, np.zeros((3, 3)), 0.2, colour)
+        else:
+            knn_query(forest, np.zeros((3, 3)), 4, colour)
+    # Given result_type, the same contribution sums colours.
+    total = radius_query(forest, np.zeros((3, 3)), 0.2, colour, result_type=mi.Color3f)
+    assert isinstance(total, mi.Color3f)

@@ -19,10 +19,10 @@ from mi_partpm.trace import map_seeds, map_sizes
     ({"photon_count": 10**8, "map_count": 2**21},
      r"map_count must be an integer in \[1, 1048576\] \(the most maps a forest holds\), got "
      r"2097152"),
-    ({"radius": 0.0}, r"radius must be a finite number in \[1e-18, 1e\+18\], got 0.0"),
-    ({"radius": 1e-19}, r"radius must be a finite number in \[1e-18, 1e\+18\], got 1e-19"),
+    ({"radius": 0.0}, r"radius must be a finite number in \[1e-15, 1e\+18\], got 0.0"),
+    ({"radius": 1e-16}, r"radius must be a finite number in \[1e-15, 1e\+18\], got 1e-16"),
     ({"caustic_photon_count": 1000, "caustic_radius": 5e-19},
-     r"caustic_radius must be a finite number in \[1e-18, 1e\+18\], got 5e-19"),
+     r"caustic_radius must be a finite number in \[1e-15, 1e\+18\], got 5e-19"),
     ({"radius": -1.0}, r"radius must be .* got -1.0"),
     ({"radius": math.inf}, r"radius must be .* got inf"),
     ({"radius": math.nan}, r"radius must be .* got nan"),
@@ -30,7 +30,7 @@ from mi_partpm.trace import map_seeds, map_sizes
     ({"radius_fraction": 1.5}, r"radius_fraction .* got 1.5"),
     ({"radius": 0.1, "radius_fraction": 0.1}, r"either radius or radius_fraction"),
     # r^2 must be a finite float32: a larger radius divided every estimate by inf (black).
-    ({"radius": 1e30}, r"radius must be a finite number in \[1e-18, 1e\+18\], got 1e\+30"),
+    ({"radius": 1e30}, r"radius must be a finite number in \[1e-15, 1e\+18\], got 1e\+30"),
     ({"caustic_photon_count": 1000, "caustic_radius": 1e30}, r"caustic_radius must be .*1e\+18"),
     ({"max_depth": -2}, r"max_depth must be an integer = -1 \(unlimited\) or in "
                         r"\[1, 2147483647\], got -2"),
@@ -119,20 +119,21 @@ SMALL = ["render", "cornell_box", "--resolution", "8x8", "--spp", "1", "--photon
     (["render", "cornell_box", "-o", "/proc/no_such_dir/x.exr"], "-o .* cannot be written"),
     # Radii whose squares float32 cannot compare, refused before any photon is traced.
     ([*SMALL, "--passes", "2", "--alpha", "1e-35", "-o", "x.exr"],
-     r"alpha = 1e-35 shrinks the radius 0.05 to 1.58e-19 in the first pass, below 1e-18"),
-    ([*SMALL, "--radius", "2e-18", "--caustic-photons", "100", "-o", "x.exr"],
-     r"the caustic maps' radius, a quarter of radius = 2e-18, is 5e-19: below 1e-18"),
+     r"alpha = 1e-35 shrinks the radius 0.05 to 1.58e-19 in the first pass, below 1e-15"),
+    ([*SMALL, "--radius", "2e-15", "--caustic-photons", "100", "-o", "x.exr"],
+     r"the caustic maps' radius, a quarter of radius = 2e-15, is 5e-16: below 1e-15"),
     ([*SMALL, "--passes", "100", "--alpha", "0.01", "--final-gather", "1", "--direct", "nee",
       "-o", "x.exr"], r"alpha = 0.01 shrinks the final gather's radius 0.05 to .* by pass 100"),
     ([*SMALL, "--radius-fraction", "1e-20", "-o", "x.exr"],
-     r"the radius, radius_fraction = 1e-20 of the scene's size 2, is 2e-20: below 1e-18, the "
-     r"least radius whose square float32 compares \(raise radius_fraction or give radius\)"),
+     r"the radius, radius_fraction = 1e-20 of the scene's size 2, is 2e-20: below 1e-15, the "
+     r"least radius whose squared distances float32 resolves \(raise radius_fraction or give "
+     r"radius\)"),
     ([*SMALL, "--caustic-photons", "100", "--caustic-radius-fraction", "1e-20", "-o", "x.exr"],
      r"the caustic_radius, caustic_radius_fraction = 1e-20 of the scene's size 2, is 2e-20: "
      r".*\(raise caustic_radius_fraction or give caustic_radius\)"),
-    ([*SMALL, "--caustic-photons", "100", "--radius-fraction", "1e-18", "-o", "x.exr"],
-     r"the caustic_radius, a quarter of radius_fraction = 1e-18 of the scene's size 2, is "
-     r"5e-19: .*\(raise radius_fraction or give caustic_radius\)"),
+    ([*SMALL, "--caustic-photons", "100", "--radius-fraction", "1.6e-15", "-o", "x.exr"],
+     r"the caustic_radius, a quarter of radius_fraction = 1.6e-15 of the scene's size 2, is "
+     r"8e-16: .*\(raise radius_fraction or give caustic_radius\)"),
     (["render", "cornell_box", "-o", "x.exr", "--stats-json", "/proc/x.json"],
      "--stats-json .* cannot be written"),
 ])

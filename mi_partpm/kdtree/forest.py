@@ -45,7 +45,7 @@ import numpy as np
 
 __all__ = ["Forest", "build_forest", "as_points", "shared_leaf_size", "morton_codes", "morton_order",
            "tree_bytes", "tree_depth", "check_coordinates", "MAX_MAPS", "MAX_COORD", "LEAF_SIZE",
-           "NODE_BYTES", "LEAF_ENTRY_BYTES",
+           "NODE_BYTES", "LEAF_ENTRY_BYTES", "MIN_EXTENT", "check_extent",
            "LEAF_BOX_BYTES", "RECORD_FLOATS", "LAYOUTS", "rows_in_order"]
 
 #: Default most photons per leaf of a tree of one map (a shared tree's: :func:`shared_leaf_size`);
@@ -67,6 +67,11 @@ MAX_MAPS = 1 << 20
 #: The largest magnitude of a coordinate, of a photon or a query point: distances are
 #: compared squared, in float32, and the square of a distance beyond 1.8 x 10^19 overflows.
 MAX_COORD = 1e18
+#: The least span of a forest's points (unless they all sit at one point): squared distances
+#: below float32's normal range flush to zero, so distances below 1e-15 are not resolved
+#: (the queries' least radius), and points that span 1e-12 are that far apart even when 10^9
+#: of them fill the box evenly.
+MIN_EXTENT = 1e-12
 
 #: Bytes of one internal node: the split value (float32) and the split axis (uint32).
 NODE_BYTES = 8
@@ -92,6 +97,9 @@ def tree_depth(counts, leaf_size=LEAF_SIZE) -> np.ndarray:
     ceil(c / 2**D) <= leaf_size (per tree; ``leaf_size`` may be one per tree)."""
     counts = np.asarray(counts, dtype=np.int64)
     leaf_size = np.asarray(leaf_size, dtype=np.int64)
+    if np.any(counts < 0) or np.any(leaf_size < 1):
+        raise ValueError(f"counts must be >= 0 and leaf_size >= 1, got counts from "
+                         f"{counts.min(initial=0)} and leaf_size {leaf_size.min(initial=1)}")
     leaves_needed = np.maximum(1, -(-counts // leaf_size))
     return np.ceil(np.log2(leaves_needed)).astype(np.int64)
 
@@ -233,7 +241,11 @@ class Forest:
             first, stop = 0, self.map_count
         else:
             try:
-                first, stop = (int(v) for v in maps)
+                first, stop = maps
+                if not all(isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+                           for v in (first, stop)):
+                    raise TypeError
+                first, stop = int(first), int(stop)
             except (TypeError, ValueError):
                 raise ValueError(f"maps must be (first, stop) with 0 <= first <= stop <= "
                                  f"map_count = {self.map_count}, got {maps!r}") from None
@@ -288,6 +300,8 @@ def as_points(points, name: str = "points") -> mi.Point3f:
             raise ValueError(f"{name} must be a Dr.Jit 3-vector such as mi.Point3f, or an "
                              f"array of shape (N, 3); got {type(points).__name__}")
         return mi.Point3f(mi.Float(points.x), mi.Float(points.y), mi.Float(points.z))
+    if np.iscomplexobj(points):
+        raise ValueError(f"{name} must be real numbers of shape (N, 3), got complex ones")
     try:                                     # NumPy, lists, tensors, one scalar point
         pts = np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError):
@@ -664,11 +678,27 @@ def _check_input(p, ids, map_count, leaf_size, layout):
     n_points = dr.width(p)
     if dr.width(ids) != n_points:
         raise ValueError(f"map_ids has {dr.width(ids)} entries for {n_points} points")
-    if not isinstance(leaf_size, (int, np.integer)) or leaf_size < 1:
+    if not isinstance(leaf_size, (int, np.integer)) or isinstance(leaf_size, bool) or \
+            leaf_size < 1:
         raise ValueError(f"leaf_size must be an integer >= 1, got {leaf_size!r}")
     if n_points == 0:
         return
     check_coordinates(p, "photon positions")
+    check_extent(p)
+
+
+def check_extent(p):
+    """A ValueError where the points span more than nothing but less than
+    :data:`MIN_EXTENT` (the longest side of their bounding box): their distances cannot be
+    told apart in float32 squares. Points all in one place are fine (every distance 0)."""
+    span = dr.maximum(dr.maximum(dr.max(p.x) - dr.min(p.x), dr.max(p.y) - dr.min(p.y)),
+                      dr.max(p.z) - dr.min(p.z))
+    extent = float(span[0])
+    if 0 < extent < MIN_EXTENT:
+        raise ValueError(f"photon positions span {extent:.3g} (the longest side of their "
+                         f"bounding box), less than {MIN_EXTENT:g}: distances below 1e-15 are "
+                         f"not resolved in float32 squares (those of points 1e-18 apart came "
+                         f"out 0); scale the points and the queries up")
 
 
 def build_forest(points, map_ids=None, map_count: int | None = None,

@@ -19,9 +19,11 @@ import mitsuba as mi
 import numpy as np
 
 from .forest import Forest, as_points
-from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, check_forest, check_per_query,
+from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, check_forest, check_order,
+                     check_per_query,
                      check_queries, coordinate,
                      group_balls, group_lanes, leaf_reached, leaf_run, order_queries, permute,
+                     result_type_errors, typed_contribution,
                      photon_payload, photon_position, split_of, tree_row, unpermute,
                      walk_start)
 
@@ -160,7 +162,7 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     check_forest(forest)
     if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or not 1 <= k <= MAX_K:
         raise ValueError(f"k must be an integer in [1, {MAX_K}], got {k!r} (a query keeps up "
-                         f"to {KNN_KEEP} k candidates in a local array of at most 65536)")
+                         f"to {KNN_KEEP} k candidates in a local array of fewer than 65536)")
     if walk not in WALKS:
         raise ValueError(f"walk must be one of {', '.join(repr(w) for w in WALKS)}, got "
                          f"{walk!r}")
@@ -171,6 +173,8 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     if max_radius is not None:
         max_radius = check_per_query(max_radius, "max_radius", width, active=active)
     p = check_queries(p, "p", active)
+    check_order(order)
+    forest.walk_table(maps)            # refuses a bad range, an empty forest's too
     if max_radius is None:
         r2max = dr.inf
     elif isinstance(max_radius, (int, float)):
@@ -199,9 +203,12 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         r2max = permute(dr.zeros(mi.Float, width) + r2max, perm, width)
     run = _knn_grouped if walk == "group" and (perm is not None or order == "given") \
         else _knn_walk
-    res, d2, idx = run(forest, permute(p, perm, width), int(k), contribution, result_type,
-                       r2max, permute(active, perm, width), forest.walk_table(maps),
-                       neighbours, accept, permute(state, perm, width))
+    if contribution is not None:
+        contribution = typed_contribution(contribution, result_type)
+    with result_type_errors():
+        res, d2, idx = run(forest, permute(p, perm, width), int(k), contribution, result_type,
+                           r2max, permute(active, perm, width), forest.walk_table(maps),
+                           neighbours, accept, permute(state, perm, width))
     res = KnnResult(*[unpermute(v, perm, width) for v in (res.total, res.radius2, res.count)],
                     QueryStats(*[unpermute(v, perm, width) for v in (
                         res.stats.nodes_visited, res.stats.photons_tested,
@@ -530,7 +537,9 @@ def _put(into, other, lanes, active=True):
 
 
 def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
-    """NumPy front end of :func:`knn_query`, shaped like ``scipy.spatial.cKDTree.query``.
+    """NumPy front end of :func:`knn_query`, answering as ``scipy.spatial.cKDTree.query``
+    with an integer k does, but always shaped ``(Q, k)``: scipy drops the k axis for k = 1
+    and the query axis for one (3,) point, and takes a list of k; this does neither.
 
     Returns ``(distance, index)``, both ``(Q, k)`` and sorted by distance: ``index`` refers
     to the caller's photon order (the ``points`` given to :func:`build_forest`); a missing
@@ -542,7 +551,8 @@ def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
     are float32, so points closer than float32 resolves (about 1e-7 of their magnitude)
     coincide. The k neighbours are k separate device arrays: their cost grows faster than k
     (k = 1000 took seconds for 10 queries); sums over them (:func:`knn_query` with a
-    ``contribution``) do not.
+    ``contribution``) do not, and neither maps, masks nor the walking order are taken here
+    (:func:`knn_query` with ``neighbours=True`` takes them).
     """
     p = check_queries(points, "points")
     _, d2, idx = knn_query(forest, p, k, max_radius=max_radius, neighbours=True)

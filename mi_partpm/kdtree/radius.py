@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import platform
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import drjit as dr
@@ -109,14 +110,16 @@ def check_queries(p, name: str = "p", active=True) -> mi.Point3f:
     return p
 
 
-#: The least nonzero radius: the square of a smaller one is below float32's normal range,
-#: where squared distances lose their precision (or flush to zero).
-MIN_RADIUS = 1e-18
+#: The least nonzero radius: a squared distance is the sum of three squared float32
+#: differences, and where those leave float32's normal range (below 1.2e-38) they flush to
+#: zero. At 1e-15 that error is below 1e-7 of r^2; at 1e-18, where r^2 itself was still
+#: normal, photons up to 1.0001 r were found.
+MIN_RADIUS = 1e-15
 
 
 def below_min_radius() -> str:
     """How the messages that refuse a radius below :data:`MIN_RADIUS` say why."""
-    return f"below {MIN_RADIUS:g}, the least radius whose square float32 compares"
+    return f"below {MIN_RADIUS:g}, the least radius whose squared distances float32 resolves"
 
 
 def check_per_query(value, name: str, width: int, radius: bool = True, active=True):
@@ -125,15 +128,26 @@ def check_per_query(value, name: str, width: int, radius: bool = True, active=Tr
     ValueError naming ``name``."""
     bound = f"{name} must be 0 or in [{MIN_RADIUS:g}, inf] (inf for no bound)"
     if isinstance(value, (bool, int, float, np.integer, np.floating)):
-        if radius and not (float(value) == 0 or float(value) >= MIN_RADIUS):
-            raise ValueError(f"{bound}, got {value!r}")
+        if radius:
+            try:
+                ok = float(value) == 0 or float(value) >= MIN_RADIUS
+            except OverflowError:            # an int beyond a float: not a radius
+                raise ValueError(f"{bound}, got an integer too large for a float") from None
+            if not ok:
+                raise ValueError(f"{bound}, got {value!r}")
         return value
     if not dr.is_array_v(value):             # NumPy arrays, lists
         host = np.asarray(value)
-        if host.dtype.kind not in "biuf":
-            raise ValueError(f"{name} must be a number or one per query point, got "
-                             f"{value!r:.60}")
+        kinds = "iuf" if radius else "b"
+        if host.dtype.kind not in kinds or host.ndim > 1:
+            want = "a number or one per query point (shape (Q,))" if radius else \
+                "true or false, or one bool per query point (shape (Q,))"
+            got = f"shape {host.shape}, dtype {host.dtype}" if host.ndim else repr(value)
+            raise ValueError(f"{name} must be {want}, got {got:.80}")
         value = (mi.Float if radius else mi.Bool)(host.reshape(-1))
+    elif not radius and not isinstance(value, mi.Bool):
+        raise ValueError(f"{name} must be true or false, or a mi.Bool per query point, got "
+                         f"{type(value).__name__}")
     n = dr.width(value)
     if n not in (1, width):
         raise ValueError(f"{name} has {n} entries for {width} query points (give one, or "
@@ -146,6 +160,44 @@ def check_per_query(value, name: str, width: int, radius: bool = True, active=Tr
     return value
 
 
+class ResultTypeError(TypeError):
+    """A query's ``contribution`` returned a value that its ``result_type`` cannot hold."""
+
+
+def typed_contribution(contribution, result_type):
+    """``contribution``, checking that each value it returns adds to ``result_type`` (a
+    vector, e.g. a colour, does not add to a scalar total): a :class:`ResultTypeError` naming
+    ``result_type`` otherwise, which :func:`result_type_errors` passes on out of the walk's
+    loop (inside, Dr.Jit reported only that the loop's state changed type)."""
+    def call(*args):
+        value = contribution(*args)
+        if dr.is_array_v(value) and type(value) is not result_type and \
+                dr.depth_v(value) > dr.depth_v(result_type):
+            raise ResultTypeError(
+                f"contribution returned {type(value).__name__}, which result_type = "
+                f"{result_type.__name__} cannot hold: pass result_type="
+                f"{type(value).__name__} (or return {result_type.__name__})")
+        return value
+    return call
+
+
+@contextmanager
+def result_type_errors():
+    """Raise the :class:`ResultTypeError` that a walk's loop met as itself, not wrapped in
+    Dr.Jit's error of the loop."""
+    try:
+        yield
+    except RuntimeError as e:
+        cause, seen = e, set()
+        while cause is not None and id(cause) not in seen and \
+                not isinstance(cause, ResultTypeError):
+            seen.add(id(cause))
+            cause = cause.__cause__ or cause.__context__
+        if isinstance(cause, ResultTypeError):
+            raise ResultTypeError(str(cause)) from None
+        raise
+
+
 def check_forest(forest):
     """A TypeError unless ``forest`` is a :class:`~.forest.Forest`."""
     if not isinstance(forest, Forest):
@@ -153,11 +205,16 @@ def check_forest(forest):
                         f"{type(forest).__name__}")
 
 
-def order_queries(p, width: int, order: str):
-    """The permutation that puts the queries in walking order, or None to keep theirs."""
+def check_order(order: str):
+    """A ValueError unless ``order`` is one of :data:`ORDERS`."""
     if order not in ORDERS:
         raise ValueError(f"order must be one of {', '.join(repr(o) for o in ORDERS)}, got "
                          f"{order!r}")
+
+
+def order_queries(p, width: int, order: str):
+    """The permutation that puts the queries in walking order, or None to keep theirs."""
+    check_order(order)
     if order == "given" or width < SORT_FROM:
         return None
     return dr.argsort(morton_codes(p))
@@ -329,6 +386,8 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     active = check_per_query(active, "active", width, radius=False)
     r = check_per_query(r, "r", width, active=active)
     p = check_queries(p, "p", active)
+    check_order(order)
+    forest.walk_table(maps)            # refuses a bad range, an empty forest's too
     if forest.size == 0 or width == 0:
         # No photon anywhere: nothing to walk (and no array to gather from).
         zeros = dr.zeros(mi.UInt32, width)
@@ -340,9 +399,11 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     r = dr.opaque(mi.Float, r) if isinstance(r, (int, float)) else mi.Float(r)
     p, r, active = permute(p, perm, width), permute(r, perm, width), permute(active, perm, width)
     ball = group_balls(p, r, active, width) if walk == "group" else (p, r)
-    total, stats = _walk(forest, p, r * r, ball, contribution,
-                         result_type, active, forest.walk_table(maps), with_stats, accept,
-                         permute(state, perm, width), with_payload=with_payload)
+    contribution = typed_contribution(contribution, result_type)
+    with result_type_errors():
+        total, stats = _walk(forest, p, r * r, ball, contribution, result_type, active,
+                             forest.walk_table(maps), with_stats, accept,
+                             permute(state, perm, width), with_payload=with_payload)
     total = unpermute(total, perm, width)
     if not with_stats:
         return total
