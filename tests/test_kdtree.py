@@ -981,3 +981,36 @@ def test_a_contribution_of_another_type_names_result_type(kind):
     # Given result_type, the same contribution sums colours.
     total = radius_query(forest, np.zeros((3, 3)), 0.2, colour, result_type=mi.Color3f)
     assert isinstance(total, mi.Color3f)
+
+
+def test_radius_neighbours_answers_as_query_ball_point(monkeypatch):
+    """The NumPy front end of the radius query gives scipy's query_ball_point: the indices
+    of every query's photons (sorted) and, with return_length, their counts; over unsorted
+    queries (more than sort them), per-query radii, several maps and a range of maps."""
+    from mi_partpm.kdtree import radius_neighbours
+    rng = np.random.default_rng(5)
+    pts, q = rng.random((5000, 3)), rng.random((3000, 3))
+    r = rng.uniform(0.02, 0.08, 3000)
+    maps = rng.integers(0, 4, 5000)
+    forest = build_forest(pts, maps, 4)
+    tree = cKDTree(pts)
+    lists = radius_neighbours(forest, q, r)
+    ref = tree.query_ball_point(q, r)
+    assert len(lists) == 3000 and sum(len(a) for a in lists) > 5000
+    differ = sum(not np.array_equal(a, np.sort(b)) for a, b in zip(lists, ref))
+    assert differ <= 3, differ                        # float32 rounding at the sphere
+    lengths = radius_neighbours(forest, q, r, return_length=True)
+    assert np.abs(lengths - tree.query_ball_point(q, r, return_length=True)).sum() <= 3
+    some = radius_neighbours(forest, q[:50], 0.1, maps=(1, 3))
+    keep = np.isin(maps, [1, 2])
+    sub = cKDTree(pts[keep])
+    for got, want in zip(some, sub.query_ball_point(q[:50], 0.1)):
+        np.testing.assert_array_equal(got, np.sort(np.nonzero(keep)[0][want]))
+    assert radius_neighbours(forest, np.zeros((0, 3)), 0.1) == []
+    assert [len(a) for a in radius_neighbours(forest, q[:3], 0)] == [0, 0, 0]
+    # More photons than the index lists are gathered by (the largest k): said, not cut.
+    from mi_partpm.kdtree import knn as knn_module
+    monkeypatch.setattr(knn_module, "MAX_K", 4999)
+    with pytest.raises(ValueError, match=r"a query finds 5,000 photons within r, more than "
+                                         r"the 4999 .* return_length=True"):
+        radius_neighbours(forest, q[:2], 10.0)

@@ -20,15 +20,13 @@ import numpy as np
 
 from .forest import Forest, as_points
 from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, check_forest, check_order,
-                     check_per_query,
-                     check_queries, coordinate,
-                     group_balls, group_lanes, leaf_reached, leaf_run, order_queries, permute,
-                     result_type_errors, typed_contribution,
-                     photon_payload, photon_position, split_of, tree_row, unpermute,
-                     walk_start)
+                     check_per_query, check_queries, coordinate, group_balls, group_lanes,
+                     leaf_reached, leaf_run, order_queries, permute, photon_payload,
+                     photon_position, radius_query, result_type_errors, split_of, tree_row,
+                     typed_contribution, unpermute, walk_start)
 
-__all__ = ["knn_query", "KnnResult", "knn_neighbours", "KNN_KEEP", "KNN_REACH", "KNN_SPREAD",
-           "KNN_BINS"]
+__all__ = ["knn_query", "KnnResult", "knn_neighbours", "radius_neighbours", "KNN_KEEP",
+           "KNN_REACH", "KNN_SPREAD", "KNN_BINS"]
 
 #: The grouped walk keeps up to this many times k of the photons within a lane's bound; a
 #: lane that finds more is walked again on its own.
@@ -555,7 +553,14 @@ def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
     (:func:`knn_query` with ``neighbours=True`` takes them).
     """
     p = check_queries(points, "points")
-    _, d2, idx = knn_query(forest, p, k, max_radius=max_radius, neighbours=True)
+    return _sorted_neighbours(forest, p, k, max_radius)
+
+
+def _sorted_neighbours(forest, p, k, max_radius, maps=None):
+    """The k nearest photons of every query (within ``max_radius``), as NumPy (distance,
+    index) arrays of shape (Q, k), nearest first; index in the caller's photon order, N
+    (and distance inf) for a missing one."""
+    _, d2, idx = knn_query(forest, p, k, max_radius=max_radius, neighbours=True, maps=maps)
     dr.eval(d2, idx)
     d2 = np.stack([a.numpy() for a in d2], axis=1).reshape(-1, k).astype(np.float64)
     idx = np.stack([a.numpy() for a in idx], axis=1).reshape(-1, k).astype(np.int64)
@@ -566,3 +571,37 @@ def knn_neighbours(forest: Forest, points, k: int, max_radius=None):
     missing = ~np.isfinite(d2)
     idx = np.where(missing, n, forest.order[np.minimum(idx, max(n - 1, 0))] if n else n)
     return np.sqrt(d2), idx
+
+
+def radius_neighbours(forest: Forest, points, r, return_length: bool = False, maps=None):
+    """NumPy front end of the fixed-radius query, as ``scipy.spatial.cKDTree.query_ball_point``
+    answers: for each of the Q ``points``, the photons within ``r`` (a scalar or one radius
+    per point; a photon at exactly r is in), as a list of Q int64 arrays of indices into the
+    caller's photon order (the ``points`` given to :func:`build_forest`), each sorted; with
+    ``return_length``, their counts (a (Q,) int64 array). ``maps``: only maps
+    ``first .. stop-1``, as for :func:`~.radius.radius_query`.
+
+    The counts are one :func:`~.radius.radius_query`; the indices are then the k nearest
+    within r (:func:`knn_query`), k the largest count, so a query that finds more than
+    :data:`MAX_K` photons is refused (ask for the counts, or a smaller radius) and the cost
+    grows with the largest count, as :func:`knn_neighbours`' does with k. Unlike scipy:
+    positions are float32 (a photon within float32 rounding of the sphere may be in or out);
+    one (3,) point is taken as a (1, 3) array and answered with a list of one.
+    """
+    check_forest(forest)
+    p = check_queries(points, "points")
+    width = dr.width(p)
+    counts = radius_query(forest, p, r, lambda i, d2, a, s: mi.UInt32(1),
+                          result_type=mi.UInt32, maps=maps)
+    lengths = counts.numpy().astype(np.int64) if width else np.zeros(0, np.int64)
+    if return_length:
+        return lengths
+    k = int(lengths.max(initial=0))
+    if k == 0:
+        return [np.zeros(0, np.int64) for _ in range(width)]
+    if k > MAX_K:
+        raise ValueError(f"a query finds {k:,} photons within r, more than the {MAX_K} that "
+                         f"the index lists are gathered by: give return_length=True for the "
+                         f"counts, or a smaller r")
+    dist, idx = _sorted_neighbours(forest, p, k, r, maps)
+    return [np.sort(row[np.isfinite(d)]) for row, d in zip(idx, dist)]

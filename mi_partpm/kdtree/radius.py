@@ -562,3 +562,4 @@ def _walk(forest, p, r2, ball, contribution, result_type, active, walk, with_sta
             active &= photons_found <= len(collect[0])      # more than it keeps: stop
 
     return total, QueryStats(nodes_visited, photons_tested, photons_found)
+
