@@ -27,7 +27,7 @@ from pathlib import Path
 import drjit as dr
 import numpy as np
 
-__all__ = ["launcher_ranks", "run_as_one_job", "abort_job", "report_error",
+__all__ = ["launcher_ranks", "run_as_one_job", "abort_job", "report_error", "interrupted",
            "Backend", "LocalBackend", "MPIBackend", "make_backend", "BACKENDS", "comm_world",
            "owned_maps", "check_ranks", "allreduce_arrays", "abort_on_error",
            "share_cores", "find_mpiexec", "MPIUnavailable"]
@@ -92,11 +92,22 @@ def abort_job(comm, message, code: int = 1):
     """End the whole MPI job from this rank: print ``message`` (None: the rank printed its
     own), give mpiexec a moment to forward it, abort, and exit (where the abort returns
     before it ends this process)."""
-    if message:
-        report_error(comm, message)
-    time.sleep(1.0)
+    try:
+        if message:
+            report_error(comm, message)
+    except BaseException:      # noqa: BLE001  (nothing may keep the job from ending)
+        pass
+    # A rank that left the message to rank 0 waits longer, so that rank 0, which fails alike
+    # at about the same time, says it before the job ends.
+    time.sleep(SILENT_RANK_WAIT if _SILENCED else 1.0)
     comm.Abort(code)
     os._exit(code)
+
+
+#: Seconds a rank that left its message to rank 0 waits before it ends the job.
+SILENT_RANK_WAIT = 5.0
+#: Whether this rank left an error's message to rank 0 (:func:`report_error`).
+_SILENCED = False
 
 
 def report_error(comm, message: str):
@@ -105,20 +116,37 @@ def report_error(comm, message: str):
     except on ranks other than 0 for the error that every rank raises alike
     (:func:`check_ranks`: found by its words, as Mitsuba passes an integrator's error on as a
     new exception with the same text), so the job says it once."""
+    global _SILENCED
     where = "" if comm is None else f" on MPI rank {comm.rank} of {comm.size}"
     if comm is not None and comm.rank != 0 and EVERY_RANK_FAILS in message:
+        _SILENCED = True
         return
-    sys.stderr.flush()
-    line = f"partpm: error{where}: {message}\n".encode("utf-8", "replace")
+    line = f"partpm: error{where}: {message}\n"
     try:
-        os.write(sys.stderr.fileno(), line)
-    except (AttributeError, OSError, ValueError):    # a standard error without a descriptor
-        sys.stderr.write(line.decode("utf-8"))
         sys.stderr.flush()
+        data, fd = line.encode("utf-8", "replace"), sys.stderr.fileno()
+        while data:                            # os.write may write part of it
+            data = data[os.write(fd, data):]
+    except (AttributeError, OSError, ValueError):  # no descriptor (a notebook, a test's capture)
+        if sys.stderr is not None:
+            sys.stderr.write(line)
+            sys.stderr.flush()
+
+
+def interrupted(e: BaseException) -> bool:
+    """Whether ``e`` is Ctrl-C: a KeyboardInterrupt, or an error that Mitsuba or Dr.Jit
+    raised because of one (``mi.render`` wraps what interrupts it in a RuntimeError)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
 
 
 def _message(e: BaseException) -> str:
-    if isinstance(e, KeyboardInterrupt):
+    if interrupted(e):
         return "interrupted (Ctrl-C): the job stops at once, with no image"
     if isinstance(e, SystemExit):
         return f"the rank exited (SystemExit {e.code!r}) during the render"
@@ -127,7 +155,7 @@ def _message(e: BaseException) -> str:
 
 
 def _exit_code(e: BaseException, default: int) -> int:
-    if isinstance(e, KeyboardInterrupt):
+    if interrupted(e):
         return 130
     if isinstance(e, SystemExit) and isinstance(e.code, int) and e.code:
         return e.code

@@ -53,11 +53,13 @@ class SPPMState:
     r2: object
     alpha: float
     passes: int = 0
+    start_radius: float = 0.0
 
     @classmethod
     def start(cls, width: int, radius, alpha: float) -> "SPPMState":
         return cls(N=dr.zeros(mi.Float, width), tau=dr.zeros(mi.Spectrum, width),
-                   r2=dr.zeros(mi.Float, width) + dr.square(mi.Float(radius)), alpha=alpha)
+                   r2=dr.zeros(mi.Float, width) + dr.square(mi.Float(radius)), alpha=alpha,
+                   start_radius=float(radius))
 
     @property
     def radius(self):
@@ -70,6 +72,23 @@ class SPPMState:
                                                 self.alpha)
         self.passes += 1
         dr.eval(self.N, self.tau, self.r2)
+        self._check_radius()
+
+    def _check_radius(self):
+        """A ValueError naming ``alpha`` where an eye path's radius has shrunk below
+        :data:`~mi_partpm.kdtree.radius.MIN_RADIUS` (the next pass's queries would refuse
+        it). r^2 shrinks by at least alpha a pass, so the paths are looked at only once
+        start_radius^2 alpha^passes is below it: with alpha 0.7 and a radius of 0.05, after
+        about 150 passes; the radius itself shrinks far slower, as N grows."""
+        if self.start_radius <= 0 or 2 * math.log(self.start_radius) + \
+                self.passes * math.log(self.alpha) >= 2 * math.log(MIN_RADIUS):
+            return
+        least = float(dr.sqrt(dr.min(self.r2))[0]) if dr.width(self.r2) else MIN_RADIUS
+        if least < MIN_RADIUS:
+            raise ValueError(f"alpha = {self.alpha:g} has shrunk an eye path's radius from "
+                             f"{self.start_radius:g} to {least:.3g} by pass {self.passes}, "
+                             f"{below_min_radius()}: raise alpha (SPPM uses 2/3) or use fewer "
+                             f"passes")
 
     def radiance(self):
         """tau / (P pi r^2): the photon maps' radiance after the passes so far."""

@@ -68,9 +68,10 @@ def check_int(name: str, value, low: Optional[int] = None, high: Optional[int] =
     the range in the message."""
     what = allowed or _range_text(low, high)
     if isinstance(value, float) and value.is_integer() and abs(value) >= 2**63:
-        # Mitsuba's properties hold an integer beyond 64 bits as a float: say it as written.
-        raise ValueError(f"{name} must be an integer {what}, got {int(value)} (too large for "
-                         f"a 64-bit integer)")
+        # Mitsuba's properties hold an integer beyond 64 bits as a float (its last digits
+        # lost): say so, not a float the user did not write.
+        raise ValueError(f"{name} must be an integer {what}, got about {value:.4g} (Mitsuba "
+                         f"holds an integer beyond 64 bits as a float)")
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         raise ValueError(f"{name} must be an integer {what}, got {value!r}")
     if (low is not None and value < low) or (high is not None and value > high):

@@ -317,6 +317,11 @@ def _call(kind, forest, q, **kw):
      r"r must be a number or one per query point \(shape \(Q,\)\), got shape \(2, 5\)"),
     (lambda pts: _call("radius", build_forest(pts), pts[:10], active=np.ones(10) / 2),
      r"active must be true or false, or one bool per query point"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:10], active=0.5),
+     r"active must be true or false, or one bool per query point, got 0.5"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:10], r=True),
+     r"r must be 0 or in \[1e-15, inf\] \(inf for no bound\), got True \(a bool is no "
+     r"radius\)"),
     (lambda pts: _call("radius", build_forest(pts), pts[:5], maps=(0.5, 1.7)),
      r"maps must be \(first, stop\) with 0 <= first <= stop <= map_count = 1, got \(0.5"),
     (lambda pts: _call("knn", build_forest(pts), pts[:5], maps=(True, 1)),
@@ -372,21 +377,23 @@ def test_bad_input_names_the_argument(make, message):
 
 
 def test_the_least_radius_finds_what_scipy_finds():
-    """At the least radius (1e-15) the photons found are scipy's, to float32 rounding: a
-    cluster 1e-13 wide inside a cloud of size 1 (queries in the cluster). At 1e-18, where
-    squared coordinate differences flush to zero, photons up to 1.0001 r were found (1124
-    of 3000 queries differed from scipy)."""
+    """At the least radius the photons found are scipy's, to float32 rounding: a cluster
+    ten radii wide near the origin (where float32 resolves it) inside a cloud of size 1,
+    queries in the cluster, about 80 photons found per query. At 1e-18, the least radius
+    before, squared coordinate differences flushed to zero: photons up to 1.0001 r were
+    found, and 1124 of 3000 queries differed from scipy (a cluster 1e-17 wide)."""
     from mi_partpm.kdtree.radius import MIN_RADIUS
     rng = np.random.default_rng(0)
-    cluster = (0.5 + rng.random((20000, 3)) * 1e-13).astype(np.float32)
+    width = 10 * MIN_RADIUS
+    cluster = (rng.random((20000, 3)) * width).astype(np.float32)
     points = np.concatenate([cluster, rng.random((100, 3)).astype(np.float32)])
-    q = (0.5 + rng.random((500, 3)) * 1e-13).astype(np.float32)
+    q = (rng.random((500, 3)) * width).astype(np.float32)
     found = radius_query(build_forest(points), q, MIN_RADIUS,
                          lambda i, d2, a, s: mi.Float(1.0)).numpy()
-    ref = cKDTree(points.astype(np.float64)).query_ball_point(
-        q.astype(np.float64), MIN_RADIUS, return_length=True)
-    assert found.sum() > 0
-    assert np.abs(found - ref).sum() <= 2, (found.sum(), ref.sum())   # boundary rounding
+    ref = np.asarray(cKDTree(points.astype(np.float64)).query_ball_point(
+        q.astype(np.float64), MIN_RADIUS, return_length=True))
+    assert ref.mean() > 20, ref.mean()
+    assert np.abs(found - ref).sum() <= 3, (found.sum(), ref.sum())   # boundary rounding
 
 
 def test_an_empty_forest_refuses_what_a_full_one_refuses():
@@ -402,12 +409,17 @@ def test_an_empty_forest_refuses_what_a_full_one_refuses():
         knn_query(empty, q, 3, maps=(0, 9))
 
 
-def test_tree_bytes_refuses_negative_counts():
+def test_tree_bytes_refuses_what_is_no_count():
     from mi_partpm.kdtree import tree_bytes
-    with pytest.raises(ValueError, match=r"counts must be >= 0 and leaf_size >= 1"):
+    with pytest.raises(ValueError, match=r"counts must be integers >= 0, got \[-5\]"):
         tree_bytes([-5])
-    with pytest.raises(ValueError, match=r"counts must be >= 0 and leaf_size >= 1"):
+    with pytest.raises(ValueError, match=r"leaf_size must be integers >= 1, got 0"):
         tree_bytes([100], 0)
+    for leaf_size in (True, 1.5):
+        with pytest.raises(ValueError, match=r"leaf_size must be integers >= 1"):
+            tree_bytes([100], leaf_size)
+    with pytest.raises(ValueError, match=r"counts must be integers >= 0, got \[2.5\]"):
+        tree_bytes([2.5])
 
 
 def test_a_forest_is_asked_for_by_name():
@@ -1006,6 +1018,13 @@ def test_radius_neighbours_answers_as_query_ball_point(monkeypatch):
     sub = cKDTree(pts[keep])
     for got, want in zip(some, sub.query_ball_point(q[:50], 0.1)):
         np.testing.assert_array_equal(got, np.sort(np.nonzero(keep)[0][want]))
+    # A photon at exactly r (in float32) is in the list and in the count alike (the two
+    # walks squared r apart, in float64 and in float32, and disagreed at 0.1).
+    at_r = build_forest(np.array([[0.1, 0, 0], [0.7, 0.7, 0.7]], np.float32))
+    for r_at in (0.1, np.float32(0.1), 0.3):
+        lists_at = radius_neighbours(at_r, np.zeros((1, 3)), r_at)
+        assert [len(a) for a in lists_at] == radius_neighbours(
+            at_r, np.zeros((1, 3)), r_at, return_length=True).tolist() == [1]
     assert radius_neighbours(forest, np.zeros((0, 3)), 0.1) == []
     assert [len(a) for a in radius_neighbours(forest, q[:3], 0)] == [0, 0, 0]
     # More photons than the index lists are gathered by (the largest k): said, not cut.

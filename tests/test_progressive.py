@@ -305,3 +305,17 @@ def test_the_final_radius_is_reported_after_passes_only():
         outer = mi.load_dict({"type": "moment", "nested": inner}) if wrapped else inner
         mi.render(scene, integrator=outer)
         assert inner.stats["mean_final_radius"] < inner.radius, wrapped
+
+
+def test_a_radius_shrunk_below_the_least_is_said_naming_alpha():
+    """An eye path whose radius a small alpha has shrunk below the least radius the queries
+    take is an error that names alpha and the pass, after the update that shrank it (the
+    next pass's query refused it, naming only its own argument)."""
+    from mi_partpm.progressive import SPPMState
+    state = SPPMState.start(4, 5e-15, 0.01)
+    with pytest.raises(ValueError, match=r"alpha = 0.01 has shrunk an eye path's radius from "
+                                         r"5e-15 to 5e-16 by pass 1, below 1e-15"):
+        state.update(dr.zeros(mi.Spectrum, 4), mi.UInt32([100, 0, 0, 0]))
+    kept = SPPMState.start(4, 0.05, 0.7)          # the usual radii never come near it
+    for _ in range(200):
+        kept.update(dr.zeros(mi.Spectrum, 4), mi.UInt32([100, 0, 3, 0]))

@@ -368,3 +368,21 @@ def test_every_emitter_kind_emits_photons(emitter):
     assert np.all(np.isfinite(img)) and img.mean() > 0
     print(f"{emitter}: mean ratio to path {img.mean() / ref.mean():.4f} (bound 1 +- 0.06)")
     assert abs(img.mean() / ref.mean() - 1) < 0.06, (img.mean(), ref.mean())
+
+
+@pytest.mark.parametrize("integrator", ["partpm", "pm"])
+def test_a_scene_smaller_than_the_maps_resolve_is_refused_naming_its_size(integrator):
+    """A scene whose shapes span less than 1e-12 is refused before any photon is traced,
+    with its size and what to do; its photons' distances are not resolved in float32 squares
+    (the kd-tree refused them after the trace, with a message for its own users)."""
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "to_world": mi.ScalarTransform4f().look_at(
+            origin=[0, 0, 1e-13], target=[0, 0, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+        "light": {"type": "point", "position": [0, 0, 5e-14]},
+        "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(1e-14)}})
+    with pytest.raises(ValueError, match=r"the scene is 2e-14 across \(the longest side of "
+                                         r"its shapes' bounding box\), less than 1e-12.*scale "
+                                         r"the scene up"):
+        mi.load_dict({"type": integrator, "photon_count": 1000}).render(scene)

@@ -480,6 +480,9 @@ def test_reproducible_across_runs_and_map_streams_depend_on_seed_and_index_only(
 
 # ---------------------------------------------------------------- kd-tree properties
 
+from mi_partpm.kdtree.forest import MIN_EXTENT  # noqa: E402
+
+
 def point_sets():
     """Random photon sets: uniform, clusters, all on a plane, duplicates, a single photon."""
     coords = st.floats(-2, 2, allow_nan=False, width=32)
@@ -487,7 +490,10 @@ def point_sets():
 
     def shaped(base):
         return st.tuples(base, st.sampled_from(["as is", "plane", "duplicates", "cluster"]))
-    return shaped(uniform).map(_shape)
+    # Not a set that spans more than nothing but less than a forest resolves (build_forest
+    # refuses it, e.g. 0 and a subnormal): what the queries answer there is not compared.
+    return shaped(uniform).map(_shape).filter(
+        lambda p: not 0 < float(np.ptp(p, axis=0).max()) < MIN_EXTENT)
 
 
 def _shape(args):

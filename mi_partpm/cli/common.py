@@ -6,6 +6,7 @@ import os
 import re
 from pathlib import Path
 
+from ..backends import interrupted  # noqa: F401  (the command line's name for it)
 from ..props import check_float, check_int
 
 __all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
@@ -129,18 +130,6 @@ def last_line(e: Exception) -> str:
     line = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
     # The exception's class name, which the traceback's last line starts with.
     return re.sub(r"^(?:\w+\.)*[A-Z]\w*(?:Error|Exception|Unavailable): ", "", line)
-
-
-def interrupted(e: BaseException) -> bool:
-    """Whether ``e`` is Ctrl-C: a KeyboardInterrupt, or an error that Mitsuba or Dr.Jit
-    raised because of one (``mi.render`` wraps what interrupts it in a RuntimeError)."""
-    seen = set()
-    while e is not None and id(e) not in seen:
-        if isinstance(e, KeyboardInterrupt):
-            return True
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
-    return False
 
 
 def _file_on_the_way(path: Path):

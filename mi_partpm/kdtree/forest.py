@@ -95,13 +95,19 @@ SHARED_LEAF_PER_MAP = 4
 def tree_depth(counts, leaf_size=LEAF_SIZE) -> np.ndarray:
     """Depth D of the tree of ``counts`` photons: the smallest D with
     ceil(c / 2**D) <= leaf_size (per tree; ``leaf_size`` may be one per tree)."""
-    counts = np.asarray(counts, dtype=np.int64)
-    leaf_size = np.asarray(leaf_size, dtype=np.int64)
-    if np.any(counts < 0) or np.any(leaf_size < 1):
-        raise ValueError(f"counts must be >= 0 and leaf_size >= 1, got counts from "
-                         f"{counts.min(initial=0)} and leaf_size {leaf_size.min(initial=1)}")
+    counts = _integers(counts, "counts", 0)
+    leaf_size = _integers(leaf_size, "leaf_size", 1)
     leaves_needed = np.maximum(1, -(-counts // leaf_size))
     return np.ceil(np.log2(leaves_needed)).astype(np.int64)
+
+
+def _integers(values, name: str, least: int) -> np.ndarray:
+    """``values`` (a number or array-like) as int64, each an integer >= ``least`` (not a
+    bool): a ValueError naming ``name`` otherwise."""
+    host = np.asarray(values)
+    if host.dtype.kind not in "iu" or np.any(host < least):
+        raise ValueError(f"{name} must be integers >= {least}, got {values!r:.80}")
+    return host.astype(np.int64)
 
 
 def tree_bytes(counts, leaf_size: int = LEAF_SIZE) -> np.ndarray:
@@ -736,8 +742,10 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     ------
     ValueError
         Mismatched sizes, map ids out of range, a map count outside [1, :data:`MAX_MAPS`], a
-        leaf size below 1, an unknown layout, a payload that is not 32-bit integers, or a
-        position that is not finite or has a coordinate beyond +-:data:`MAX_COORD`.
+        leaf size that is not an integer >= 1, an unknown layout, a payload that is not
+        32-bit integers, complex points, a position that is not finite or has a coordinate
+        beyond +-:data:`MAX_COORD`, or points that span more than nothing but less than
+        :data:`MIN_EXTENT`.
 
     Notes
     -----

@@ -176,7 +176,9 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     if max_radius is None:
         r2max = dr.inf
     elif isinstance(max_radius, (int, float)):
-        r2max = dr.opaque(mi.Float, float(max_radius) ** 2)   # no recompile per value
+        # Squared in float32, as the radius query squares its radius (in float64 and then
+        # rounded, a photon at exactly r could be in one query and not the other).
+        r2max = dr.square(dr.opaque(mi.Float, float(max_radius)))   # no recompile per value
     else:
         r2max = dr.square(mi.Float(max_radius))
     if forest.size == 0 or width == 0:
@@ -577,8 +579,9 @@ def radius_neighbours(forest: Forest, points, r, return_length: bool = False, ma
     """NumPy front end of the fixed-radius query, as ``scipy.spatial.cKDTree.query_ball_point``
     answers: for each of the Q ``points``, the photons within ``r`` (a scalar or one radius
     per point; a photon at exactly r is in), as a list of Q int64 arrays of indices into the
-    caller's photon order (the ``points`` given to :func:`build_forest`), each sorted; with
-    ``return_length``, their counts (a (Q,) int64 array). ``maps``: only maps
+    caller's photon order (the ``points`` given to :func:`build_forest`), each sorted (scipy
+    answers with an object array of lists); with ``return_length``, their counts (a (Q,)
+    int64 array), which are the lists' lengths. ``maps``: only maps
     ``first .. stop-1``, as for :func:`~.radius.radius_query`.
 
     The counts are one :func:`~.radius.radius_query`; the indices are then the k nearest

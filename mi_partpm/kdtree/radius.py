@@ -127,7 +127,12 @@ def check_per_query(value, name: str, width: int, radius: bool = True, active=Tr
     [:data:`MIN_RADIUS`, inf], NaN not, in every ``active`` lane) or a mask. Raises a
     ValueError naming ``name``."""
     bound = f"{name} must be 0 or in [{MIN_RADIUS:g}, inf] (inf for no bound)"
-    if isinstance(value, (bool, int, float, np.integer, np.floating)):
+    if isinstance(value, (bool, int, float, np.integer, np.floating, np.bool_)):
+        if radius and isinstance(value, (bool, np.bool_)):
+            raise ValueError(f"{bound}, got {value!r} (a bool is no radius)")
+        if not radius and not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f"{name} must be true or false, or one bool per query point, "
+                             f"got {value!r}")
         if radius:
             try:
                 ok = float(value) == 0 or float(value) >= MIN_RADIUS
