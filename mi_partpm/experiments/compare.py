@@ -90,7 +90,7 @@ class CompareSettings:
 #: spheres, where one traced path finds the light, hold a third to two thirds of it, so its
 #: ratio to the paper configuration's moves with the seed. Relative MSE against path over
 #: the paper configuration's, seeds 0 / 1 / 2: 0.57 / 0.55 / 0.89 with a final gather of 8
-#: and a quarter of the radius; 0.48 / 0.46 / 0.80 with this one
+#: and a quarter of the radius; 0.49 / 0.46 / 0.80 with this one
 #: (tuned on seed 0; seeds 1 and 2 checked it). Before the caustic map held the glossy
 #: caustics, seed 0 gave 0.71.
 BEST = {"direct": "nee", "glossy": "trace", "glossy_samples": 8, "final_gather": 16,
