@@ -45,7 +45,7 @@ import numpy as np
 
 __all__ = ["Forest", "build_forest", "as_points", "shared_leaf_size", "morton_codes", "morton_order",
            "tree_bytes", "tree_depth", "check_coordinates", "MAX_MAPS", "MAX_COORD", "LEAF_SIZE",
-           "NODE_BYTES", "LEAF_ENTRY_BYTES", "MIN_EXTENT", "check_extent",
+           "NODE_BYTES", "LEAF_ENTRY_BYTES", "MIN_EXTENT", "check_extent", "check_span",
            "LEAF_BOX_BYTES", "RECORD_FLOATS", "LAYOUTS", "rows_in_order"]
 
 #: Default most photons per leaf of a tree of one map (a shared tree's: :func:`shared_leaf_size`);
@@ -699,12 +699,18 @@ def check_extent(p):
     told apart in float32 squares. Points all in one place are fine (every distance 0)."""
     span = dr.maximum(dr.maximum(dr.max(p.x) - dr.min(p.x), dr.max(p.y) - dr.min(p.y)),
                       dr.max(p.z) - dr.min(p.z))
-    extent = float(span[0])
+    check_span(float(span[0]), "photon positions span {} (the longest side of their bounding "
+               "box)", "scale the points and the queries up")
+
+
+def check_span(extent: float, what: str, fix: str):
+    """The one refusal of a set of points (or a scene) that spans ``extent``, more than
+    nothing but less than :data:`MIN_EXTENT`: ``what`` says what spans it (``{}`` the
+    extent), ``fix`` what to do."""
     if 0 < extent < MIN_EXTENT:
-        raise ValueError(f"photon positions span {extent:.3g} (the longest side of their "
-                         f"bounding box), less than {MIN_EXTENT:g}: distances below 1e-15 are "
-                         f"not resolved in float32 squares (those of points 1e-18 apart came "
-                         f"out 0); scale the points and the queries up")
+        raise ValueError(f"{what.format(f'{extent:.3g}')}, less than {MIN_EXTENT:g}: "
+                         f"distances below 1e-15 are not resolved in float32 squares (those "
+                         f"of points 1e-18 apart came out 0); {fix}")
 
 
 def build_forest(points, map_ids=None, map_count: int | None = None,

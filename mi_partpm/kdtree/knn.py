@@ -172,7 +172,7 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         max_radius = check_per_query(max_radius, "max_radius", width, active=active)
     p = check_queries(p, "p", active)
     check_order(order)
-    forest.walk_table(maps)            # refuses a bad range, an empty forest's too
+    table = forest.walk_table(maps)    # refuses a bad range, an empty forest's too
     if max_radius is None:
         r2max = dr.inf
     elif isinstance(max_radius, (int, float)):
@@ -207,7 +207,7 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         contribution = typed_contribution(contribution, result_type)
     with result_type_errors():
         res, d2, idx = run(forest, permute(p, perm, width), int(k), contribution, result_type,
-                           r2max, permute(active, perm, width), forest.walk_table(maps),
+                           r2max, permute(active, perm, width), table,
                            neighbours, accept, permute(state, perm, width))
     res = KnnResult(*[unpermute(v, perm, width) for v in (res.total, res.radius2, res.count)],
                     QueryStats(*[unpermute(v, perm, width) for v in (

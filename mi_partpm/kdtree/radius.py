@@ -128,18 +128,20 @@ def check_per_query(value, name: str, width: int, radius: bool = True, active=Tr
     ValueError naming ``name``."""
     bound = f"{name} must be 0 or in [{MIN_RADIUS:g}, inf] (inf for no bound)"
     if isinstance(value, (bool, int, float, np.integer, np.floating, np.bool_)):
-        if radius and isinstance(value, (bool, np.bool_)):
+        is_bool = isinstance(value, (bool, np.bool_))
+        if not radius:                       # a mask: true or false
+            if not is_bool:
+                raise ValueError(f"{name} must be true or false, or one bool per query point, "
+                                 f"got {value!r}")
+            return value
+        if is_bool:
             raise ValueError(f"{bound}, got {value!r} (a bool is no radius)")
-        if not radius and not isinstance(value, (bool, np.bool_)):
-            raise ValueError(f"{name} must be true or false, or one bool per query point, "
-                             f"got {value!r}")
-        if radius:
-            try:
-                ok = float(value) == 0 or float(value) >= MIN_RADIUS
-            except OverflowError:            # an int beyond a float: not a radius
-                raise ValueError(f"{bound}, got an integer too large for a float") from None
-            if not ok:
-                raise ValueError(f"{bound}, got {value!r}")
+        try:
+            ok = float(value) == 0 or float(value) >= MIN_RADIUS
+        except OverflowError:                # an int beyond a float: not a radius
+            raise ValueError(f"{bound}, got an integer too large for a float") from None
+        if not ok:
+            raise ValueError(f"{bound}, got {value!r}")
         return value
     if not dr.is_array_v(value):             # NumPy arrays, lists
         host = np.asarray(value)
@@ -392,7 +394,7 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     r = check_per_query(r, "r", width, active=active)
     p = check_queries(p, "p", active)
     check_order(order)
-    forest.walk_table(maps)            # refuses a bad range, an empty forest's too
+    table = forest.walk_table(maps)    # refuses a bad range, an empty forest's too
     if forest.size == 0 or width == 0:
         # No photon anywhere: nothing to walk (and no array to gather from).
         zeros = dr.zeros(mi.UInt32, width)
@@ -407,7 +409,7 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     contribution = typed_contribution(contribution, result_type)
     with result_type_errors():
         total, stats = _walk(forest, p, r * r, ball, contribution, result_type, active,
-                             forest.walk_table(maps), with_stats, accept,
+                             table, with_stats, accept,
                              permute(state, perm, width), with_payload=with_payload)
     total = unpermute(total, perm, width)
     if not with_stats:
@@ -567,4 +569,3 @@ def _walk(forest, p, r2, ball, contribution, result_type, active, walk, with_sta
             active &= photons_found <= len(collect[0])      # more than it keeps: stop
 
     return total, QueryStats(nodes_visited, photons_tested, photons_found)
-

@@ -228,17 +228,14 @@ def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool 
     that span less than the photon maps resolve (:data:`~mi_partpm.kdtree.forest.MIN_EXTENT`)
     or, when ``needs_sensor``, no sensor or a first sensor whose film has no pixel or whose
     sampler takes no sample (:func:`check_sensor`). The one check every entry point makes."""
-    from ..kdtree.forest import MIN_EXTENT
+    from ..kdtree.forest import check_span
     what = "the scene" if name is None else f"scene {name!r}"
     _repair_infinite_emitters(scene, name)
     if scene.shapes():
         box = scene_bounds(scene)
         longest = float(max(box.max[a] - box.min[a] for a in range(3))) if box.valid() else 0.0
-        if 0 < longest < MIN_EXTENT:
-            raise ValueError(f"{what} is {longest:.3g} across (the longest side of its shapes' "
-                             f"bounding box), less than {MIN_EXTENT:g}: the photon maps compare "
-                             f"squared distances in float32 and resolve none below 1e-15; "
-                             f"scale the scene up (a to_world scale)")
+        check_span(longest, f"{what} is {{}} across (the longest side of its shapes' bounding "
+                   f"box)", "scale the scene up (a to_world scale)")
     if not scene.emitters():
         raise ValueError(f"{what} has no emitter: nothing would be lit (photon mapping needs "
                          f"at least one light)")
