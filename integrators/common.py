@@ -320,7 +320,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             seed = _as_int(seed)
             self.radius = self.search_radius(scene)
             self._start_stats(seed)
-            camera = CameraPass(scene, sensor, seed, spp, self.aov_names())
+            camera = CameraPass(scene, sensor, seed, spp, self.aov_names(), self.passes > 1)
             L, alpha = self._passes(scene, camera, seed)
             image = camera.develop(L, alpha, develop)
             if evaluate:
@@ -349,7 +349,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             eye = self.eye_pass(scene, camera.sampler, ray, weight, True,
                                 self.backend.emission_weight)
             emitted += eye.emitted * weight
-            valid += mi.Float(eye.valid)
+            valid += dr.select(eye.valid, camera.sign, 0.0)    # the filter's sign
             self._add_stats(time_eye=clock.lap(emitted, valid), cpu_eye=clock.cpu, passes=1)
             self._photon_pass(scene, terms, eye.points, camera.width, camera.sensor,
                               camera.spp, seed, pass_index, waves)

@@ -8,6 +8,15 @@ the sensor needs them, ray differentials scaled by 1/sqrt(spp), the ray weight, 
 block that receives every sample's colour, alpha and weight at the jittered position (the pixel
 itself with a box filter). A progressive render draws a new set of eye rays per pass
 (``advance``), as Mitsuba's passes do, and puts one value per sample into the film at the end.
+
+That one value mixes the passes' visible points, which lie at a new position in the pixel each
+pass, so a progressive render cannot weigh them by the reconstruction filter at their own
+positions: with a filter other than the box it draws each pass's position from the filter
+instead (filter importance sampling, as pbrt does) and puts the samples into their own pixel.
+A filter with negative lobes (Lanczos, Mitchell, Catmull-Rom) gives the samples drawn there a
+weight of -1, carried by the eye ray's weight and the film's weight channel. The image
+converges to the same filtered image as Mitsuba's, whose samples are uniform in the pixel and
+splatted with the filter's weights.
 """
 from __future__ import annotations
 
@@ -23,7 +32,8 @@ __all__ = ["CameraPass"]
 class CameraPass:
     """Film, sampler and eye rays of one ``render()`` call (see the module's text)."""
 
-    def __init__(self, scene: mi.Scene, sensor, seed: int, spp: int, aovs=()):
+    def __init__(self, scene: mi.Scene, sensor, seed: int, spp: int, aovs=(),
+                 progressive: bool = False):
         self.sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         check_sensor(self.sensor, spp=spp)
         self.film = self.sensor.film()
@@ -31,8 +41,13 @@ class CameraPass:
         if spp:
             self.sampler.set_sample_count(spp)
         self.spp = int(self.sampler.sample_count())
+        rfilter = self.film.rfilter()
+        # Filter importance sampling: the offsets' distribution (|filter|, per axis).
+        self.offsets = _filter_offsets(rfilter) if progressive and \
+            not rfilter.is_box_filter() else None
         film_size = np.array(self.film.crop_size(), dtype=np.int64)
-        border = self.film.rfilter().border_size() if self.film.sample_border() else 0
+        border = rfilter.border_size() if self.film.sample_border() and \
+            self.offsets is None else 0
         film_size += 2 * border
         self.width = int(film_size[0] * film_size[1] * self.spp)
         if self.width > 0xFFFFFFFF:
@@ -58,6 +73,9 @@ class CameraPass:
         self.pixel = mi.Vector2f(pos)
         self.diff_scale = float(np.float32(1) / np.sqrt(np.float32(self.spp)))
         self.sample_pos = None
+        self.sign = mi.Float(1.0)          # this pass's sample weights (filter signs)
+        self.sign_sum = mi.Float(0.0)      # their sum over the passes drawn so far
+        self.drawn = 0
 
     def rays(self):
         """This pass's eye rays: ``(ray, weight)``, one per sample (the sampler's state moves
@@ -66,7 +84,17 @@ class CameraPass:
         scale = dr.rcp(crop_size)
         offset = -mi.ScalarVector2f(self.film.crop_offset()) * scale
         sampler, sensor = self.sampler, self.sensor
-        self.sample_pos = self.pixel + sampler.next_2d()
+        if self.offsets is None:
+            self.sample_pos = self.pixel + sampler.next_2d()
+        else:
+            dist, rfilter = self.offsets
+            u = sampler.next_2d()
+            shift = mi.Vector2f(dist.sample(u.x), dist.sample(u.y))
+            self.sample_pos = self.pixel + 0.5 + shift
+            self.sign = dr.sign(rfilter.eval(shift.x)) * dr.sign(rfilter.eval(shift.y))
+            self.sign_sum = self.sign_sum + self.sign
+            dr.schedule(self.sign_sum)
+        self.drawn += 1
         adjusted = dr.fma(self.sample_pos, scale, offset)
         aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
         time = mi.Float(sensor.shutter_open())
@@ -81,6 +109,8 @@ class CameraPass:
             ray.o, ray.d, ray.time = ray.o + zero, ray.d + zero, ray.time + zero
         if ray.has_differentials:
             ray.scale_differential(self.diff_scale)
+        if self.offsets is not None:
+            weight = weight * self.sign
         return ray, weight
 
     def advance(self):
@@ -90,11 +120,16 @@ class CameraPass:
 
     def develop(self, value, alpha, develop: bool = True):
         """Put one ``value`` (Spectrum) and ``alpha`` per sample into the film at the last
-        pass's sample positions; return the developed image (or an empty tensor). The film
-        is cleared first, so this can be called after any pass (a checkpoint)."""
+        pass's sample positions (into the sample's pixel where the positions were drawn from
+        the filter; ``value`` and ``alpha`` then carry the filter signs, and the weight is
+        their mean); return the developed image (or an empty tensor). The film is cleared
+        first, so this can be called after any pass (a checkpoint)."""
         film = self.film
         film.prepare(self.aovs)
         block = film.create_block()
+        if self.offsets is not None:
+            block = mi.ImageBlock(block.size(), film.crop_offset(), block.channel_count(),
+                                  rfilter=_box())
         block.set_offset(film.crop_offset())
         block.set_coalesce(block.coalesce() and self.spp >= 4)
         if mi.is_spectral:
@@ -103,8 +138,11 @@ class CameraPass:
         channels = [rgb[0], rgb[1], rgb[2]]
         if mi.has_flag(film.flags(), mi.FilmFlags.Alpha):
             channels.append(mi.Float(alpha))
-        channels.append(dr.full(mi.Float, 1.0, self.width))
-        box = film.rfilter().is_box_filter()
+        if self.offsets is None:
+            channels.append(dr.full(mi.Float, 1.0, self.width))
+        else:
+            channels.append(self.sign_sum * dr.rcp(dr.opaque(mi.Float, max(self.drawn, 1))))
+        box = film.rfilter().is_box_filter() or self.offsets is not None
         block.put(self.pixel if box else self.sample_pos, channels, mi.Bool(True))
         film.put_block(block)
         if develop:
@@ -113,3 +151,18 @@ class CameraPass:
             return image
         film.schedule_storage()
         return mi.TensorXf()
+
+
+_RESOLUTION = 1024         # points of the tabulated filter per axis
+
+
+def _filter_offsets(rfilter):
+    """A distribution of pixel offsets following |filter| on [-radius, radius] (one axis; the
+    filters are separable), and the filter for the signs."""
+    r = float(rfilter.radius())
+    x = dr.linspace(mi.Float, -r, r, _RESOLUTION)
+    return mi.ContinuousDistribution(mi.ScalarVector2f(-r, r), dr.abs(rfilter.eval(x))), rfilter
+
+
+def _box():
+    return mi.load_dict({"type": "box"})

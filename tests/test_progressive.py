@@ -319,3 +319,49 @@ def test_a_radius_shrunk_below_the_least_is_said_naming_alpha():
     kept = SPPMState.start(4, 0.05, 0.7)          # the usual radii never come near it
     for _ in range(200):
         kept.update(dr.zeros(mi.Spectrum, 4), mi.UInt32([100, 0, 3, 0]))
+
+
+def _box_room(rfilter):
+    """A closed box lit by a small ceiling panel, seen from outside its open front, at
+    32 x 32 with Mitsuba's ``rfilter`` (sharp edges: the light, the walls' corners)."""
+    T = mi.ScalarTransform4f
+
+    def wall(t, rgb=0.7):
+        return {"type": "rectangle", "to_world": t,
+                "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rgb}}}
+    return mi.load_dict({
+        "type": "scene",
+        "floor": wall(T().translate([0, -1, 0]).rotate([1, 0, 0], -90)),
+        "ceiling": wall(T().translate([0, 1, 0]).rotate([1, 0, 0], 90)),
+        "back": wall(T().translate([0, 0, -1])),
+        "left": wall(T().translate([-1, 0, 0]).rotate([0, 1, 0], 90), [0.7, 0.2, 0.2]),
+        "right": wall(T().translate([1, 0, 0]).rotate([0, 1, 0], -90)),
+        "light": {"type": "rectangle",
+                  "to_world": T().translate([0, 0.99, 0]).rotate([1, 0, 0], 90).scale(0.3),
+                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 10}}},
+        "sensor": {"type": "perspective", "fov": 60,
+                   "to_world": T().look_at(origin=[0, 0, 3.5], target=[0, 0, 0],
+                                           up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32,
+                            "rfilter": {"type": rfilter}},
+                   "sampler": {"type": "independent", "sample_count": 4}}})
+
+
+@pytest.mark.parametrize("rfilter", ["gaussian", "lanczos"])
+def test_passes_converge_to_paths_image_with_any_reconstruction_filter(rfilter):
+    """Each pass's eye rays lie elsewhere in their pixels; a progressive render must still
+    weigh them by the film's filter (Mitsuba's default is the Gaussian) as ``path`` does.
+    Relative L1 against path at 4096 spp, 64 passes of 20,000 photons at 4 spp. Measured over
+    seeds 0-2: Gaussian 0.0100-0.0105, Lanczos (negative lobes: signed sample weights)
+    0.0185-0.0198; when each path's mean over the passes was splatted once at the last
+    pass's position (a box blur on top of the filter) 0.089-0.093 and 0.180-0.187. Bounds
+    0.03 and 0.05: three times what was measured, a third of the blur.
+    """
+    scene = _box_room(rfilter)
+    ref = np.mean([render(scene, mi.load_dict({"type": "path"}), seed=100 + i, spp=256)
+                   for i in range(16)], axis=0)
+    img = render(scene, mi.load_dict({"type": "partpm", "photon_count": 20_000,
+                                      "passes": 64}))
+    err = np.abs(img - ref).sum() / ref.sum()
+    print(f"{rfilter}: relative L1 against path {err:.4f}")
+    assert err < (0.03 if rfilter == "gaussian" else 0.05)
