@@ -43,7 +43,7 @@ from .eyepath import lands_on, passes_through
 from .memory import TRACE_BATCH
 from .photons import Photons, empty_photons, encode_direction, spectrum_channels
 from .props import segment_limit
-from .scenes import check_scene
+from .scenes import check_scene, infinite_sphere
 
 __all__ = ["map_sizes", "map_seeds", "stream_seed", "trace_photons", "check_emitters", "emit",
            "Photons", "PATHS", "CAUSTIC_THROUGH"]
@@ -109,25 +109,58 @@ SCALED_BY_DIRECTION_LENGTH = ("Projector",)
 
 
 def _emitter_table(scene: mi.Scene):
-    """Per emitter registry id: 1 where the photon power scales with |ray.d|."""
+    """What :func:`emit` corrects per emitter: a UInt32 per emitter registry id, 1 where the
+    photon power scales with |ray.d| (:data:`SCALED_BY_DIRECTION_LENGTH`), 2 for a rotated
+    environment map (:func:`_rotated_envmap`); and that map's frame and sphere, or None."""
     ids = dr.reinterpret_array(mi.UInt32, scene.emitters_dr()).numpy()
     table = np.zeros(int(ids.max()) + 1 if ids.size else 1, dtype=np.uint32)
+    envmap = None
     for emitter, i in zip(scene.emitters(), ids):
         table[i] = emitter.class_name() in SCALED_BY_DIRECTION_LENGTH
-    return mi.UInt32(table)
+        if emitter.class_name() == "EnvironmentMapEmitter":
+            to_world = np.array(emitter.world_transform().matrix, dtype=np.float64)
+            to_world = to_world.reshape(4, 4)[:3, :3]
+            if not np.allclose(to_world, np.eye(3), atol=1e-7):
+                table[i] = 2
+                centre, radius = infinite_sphere(scene)
+                envmap = (np.linalg.inv(to_world), [float(c) for c in centre], radius)
+    return mi.UInt32(table), envmap
+
+
+def _rotated_envmap(ray, envmap):
+    """Mitsuba 3.9's ``envmap`` emits a photon of direction d = M (-d_l) (M its ``to_world``)
+    from a point of the disc perpendicular to d_l, not to d: where M turns d_l, the rays
+    cross the scene's sphere through a disc tilted against them, whose shadow is smaller than
+    the pi R^2 their power assumes (a rotated map lit the scene 1.4-4 times too brightly).
+    The photon keeps its direction and its point's coordinates on the disc, and leaves from
+    the disc perpendicular to d, as Mitsuba's unrotated map does (the same point then)."""
+    inverse, centre, radius = envmap
+    m = mi.Matrix3f(inverse.astype(np.float32).tolist())
+    d = ray.d
+    local = dr.normalize(-(m @ d))
+    rel = (ray.o - mi.Point3f(centre)) / radius + d
+    frame = mi.Frame3f(local)
+    offset = frame.to_local(rel)
+    proper = mi.Frame3f(-d).to_world(mi.Vector3f(offset.x, offset.y, 0.0))
+    return mi.Point3f(centre) + (proper - d) * radius
 
 
 def emit(scene: mi.Scene, rng, photon_count: int, table, active=True):
     """Photon rays leaving the scene's emitters, with unit directions, and their power over
-    ``photon_count`` (one emitter chosen per photon by the scene, as ``path`` does)."""
+    ``photon_count`` (one emitter chosen per photon by the scene, as ``path`` does);
+    ``table`` is :func:`_emitter_table`'s."""
     active = mi.Bool(active)
     ray, weight, emitter = scene.sample_emitter_ray(
         mi.Float(0), rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
         mi.Point2f(rng.next_float32(), rng.next_float32()), active)
+    table, envmap = table
     length = dr.norm(ray.d)
-    scaled = dr.gather(mi.UInt32, table, dr.reinterpret_array(mi.UInt32, emitter), active) == 1
-    power = mi.Spectrum(weight) * dr.select(scaled, length, 1.0) / dr.opaque(mi.Float, float(photon_count))
+    kind = dr.gather(mi.UInt32, table, dr.reinterpret_array(mi.UInt32, emitter), active)
+    power = mi.Spectrum(weight) * dr.select(kind == 1, length, 1.0) / \
+        dr.opaque(mi.Float, float(photon_count))
     ray.d = ray.d / dr.select(length > 0, length, 1.0)
+    if envmap is not None:
+        ray.o = dr.select(kind == 2, _rotated_envmap(ray, envmap), ray.o)
     return ray, power
 
 

@@ -36,6 +36,8 @@ def block_rel_mse(img, ref, block=4):
 # is 4x the worst seen, and a black image scores about 1. Before directions were normalised,
 # the scaled projector's mean ratio was 0.50. (At r = 0.1 the disc blurs the hard edges of
 # the projector's and the directional area light's patches over whole tiles: 0.026-0.079.)
+# The rotated environment map measured 0.989 (relMSE 0.0046); where its photons left from
+# Mitsuba's tilted disc (its sample_ray) the ratio was 2.70 (relMSE 4.1).
 @pytest.mark.parametrize("kind", EMITTER_KINDS)
 def test_emitter_power_matches_the_reference(kind, textures):
     scene = emitter_scene(kind, textures)

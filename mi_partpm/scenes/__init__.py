@@ -31,7 +31,7 @@ from ..props import check_int
 log = logging.getLogger("mi_partpm")
 
 __all__ = ["scene_names", "scene_path", "load_scene", "check_scene", "check_sensor",
-           "scene_bounds"]
+           "scene_bounds", "infinite_sphere"]
 
 _HERE = Path(__file__).resolve().parent
 
@@ -162,6 +162,30 @@ def _contains(outer, inner) -> bool:
                                  for a in range(3))
 
 
+def _true_box(scene: mi.Scene):
+    """The shapes' box where Mitsuba's box of the scene misses some of them, else None."""
+    if not scene.shapes():
+        return None
+    true_box = scene_bounds(scene)
+    if not true_box.valid() or _contains(scene.bbox(), true_box):
+        return None
+    return true_box
+
+
+def infinite_sphere(scene: mi.Scene):
+    """(centre, radius) of the sphere the emitters at infinity emit their photons from: the
+    one Mitsuba's ``set_scene`` gives them, around the scene's box (or the shapes' own box,
+    after :func:`_repair_infinite_emitters`)."""
+    box = _true_box(scene)
+    if box is None:
+        box = scene.bbox()
+    if not box.valid():
+        return mi.ScalarPoint3f(0.0), float(mi.math.RayEpsilon)
+    sphere = box.bounding_sphere()
+    return sphere.center, max(float(mi.math.RayEpsilon),
+                              float(sphere.radius) * (1 + float(mi.math.RayEpsilon)))
+
+
 def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
     """Where Mitsuba's box of the scene misses shapes (:func:`scene_bounds`), the emitters at
     infinity (environment, directional, sun) would emit their photons from the wrong sphere
@@ -169,10 +193,8 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
     true box (at every call: a freed scene's id and box may come back), with a warning once
     per box (a command that checks the scene by name and the render that checks it again
     warn once)."""
-    if not scene.shapes():
-        return
-    true_box = scene_bounds(scene)
-    if not true_box.valid() or _contains(scene.bbox(), true_box):
+    true_box = _true_box(scene)
+    if true_box is None:
         return
     infinite = [e for e in scene.emitters()
                 if mi.has_flag(e.flags(), mi.EmitterFlags.Infinite)]

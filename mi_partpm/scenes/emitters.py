@@ -18,7 +18,8 @@ __all__ = ["EMITTER_KINDS", "emitter_scene", "write_textures", "reference_integr
 #: Every entry, in the order the tests and the benchmark list them.
 EMITTER_KINDS = ("area_rectangle", "area_sphere", "area_mesh", "area_textured", "point",
                  "spot", "spot_textured", "directional", "directionalarea", "projector",
-                 "projector_bitmap", "projector_scaled", "constant", "envmap", "sunsky")
+                 "projector_bitmap", "projector_scaled", "constant", "envmap",
+                 "envmap_rotated", "sunsky")
 
 
 def write_textures(directory) -> dict:
@@ -66,6 +67,9 @@ def _emitter(kind: str, textures: dict) -> dict:
                              "to_world": down @ T().scale(2.0)},
         "constant": {"type": "constant", "radiance": 1.0},
         "envmap": {"type": "envmap", "filename": textures.get("envmap", "")},
+        # Tilted and turned: the sky's bright pole leans towards the floor's side.
+        "envmap_rotated": {"type": "envmap", "filename": textures.get("envmap", ""),
+                           "to_world": T().rotate([1, 0, 0], 60) @ T().rotate([0, 1, 0], 70)},
         "sunsky": {"type": "sunsky"},
     }
     return table[kind]
