@@ -165,7 +165,8 @@ def emit(scene: mi.Scene, rng, photon_count: int, table, active=True):
 
 
 def check_emitters(scene: mi.Scene, samples: int = 1024):
-    """Refuse emitters whose power is NaN, infinite or negative, before any photon is traced.
+    """Refuse emitters whose power is NaN, infinite or negative, or that give light but are
+    never sampled (``sampling_weight`` 0), before any photon is traced.
 
     Each emitter emits ``samples`` test rays (stratified samples); Mitsuba accepts such
     values in a scene file, and the tracer would otherwise drop those photons silently.
@@ -185,6 +186,12 @@ def check_emitters(scene: mi.Scene, samples: int = 1024):
         if np.any(w < 0):
             raise ValueError(f"emitter {name} emits negative power (down to {w.min():.4g}): "
                              f"its radiance / intensity must be finite and >= 0")
+        if float(emitter.sampling_weight()) <= 0 and np.any(w > 0):
+            raise ValueError(f"emitter {name} has sampling_weight = "
+                             f"{float(emitter.sampling_weight()):g}: photons leave only from "
+                             f"emitters the scene samples, so its light would be missing from "
+                             f"the image; give it a sampling_weight > 0 (a weight changes only "
+                             f"how many photons it emits, not its brightness)")
 
 
 def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: int = 0,

@@ -1,6 +1,8 @@
 """Every emitter plugin Mitsuba 3.9.1 ships for the RGB variants traces photons with the right
 power: partpm at max_depth 2 (direct light only) against an independent reference on a
 diffuse floor (mi_partpm.scenes.emitters)."""
+import gc
+
 import numpy as np
 import pytest
 
@@ -56,7 +58,9 @@ def test_emitter_power_matches_the_reference(kind, textures):
 
 def test_an_emitter_with_negative_power_is_named_with_its_type():
     """Mitsuba 3.9.1's timed_sunsky returns negative sample_ray weights (its own path
-    integrator fails on it too): the error names the emitter and its type."""
+    integrator fails on it too): the error names the emitter and its type. While a scene
+    with a timed_sunsky lives, Mitsuba 3.9.1 cannot render any other scene ("not
+    permitted": a symbolic variable evaluated), so the test lets it go before it ends."""
     scene = small_scene([0, 2, 3], [0, 0, 0], size=8,
                         floor={"type": "rectangle", "bsdf": {"type": "diffuse"}},
                         sky={"type": "timed_sunsky"})
@@ -65,4 +69,41 @@ def test_an_emitter_with_negative_power_is_named_with_its_type():
     cause = e.value
     while cause.__cause__ is not None:
         cause = cause.__cause__
-    assert "emitter 'sky' (TimedSunskyEmitter) emits negative power" in str(cause)
+    message = str(cause)
+    del scene, e, cause
+    gc.collect()
+    assert "emitter 'sky' (TimedSunskyEmitter) emits negative power" in message
+
+
+def _two_lights(weight):
+    return small_scene([0, 2, 3], [0, 0, 0], size=16,
+                       floor={"type": "rectangle", "to_world": mi.ScalarTransform4f().rotate(
+                           [1, 0, 0], -90).scale(2),
+                              "bsdf": {"type": "diffuse"}},
+                       panel={"type": "rectangle", "to_world": mi.ScalarTransform4f().translate(
+                           [0, 1, 0]).rotate([1, 0, 0], 90).scale(0.3),
+                              "emitter": {"type": "area", "radiance": 10.0,
+                                          "sampling_weight": weight}},
+                       bulb={"type": "point", "position": [0.8, 1.0, 0.3], "intensity": 1.0})
+
+
+def test_a_sampling_weight_changes_how_many_photons_an_emitter_emits_not_its_light():
+    """Mitsuba's sampling_weight picks the emitters in proportion and divides by the choice's
+    probability: with the panel's weight at 0.2 the floor is as bright as path's (measured
+    1.005 of path at 100k photons, 16 spp; bound 3%, as for every emitter). At 0 the panel
+    would emit no photon and its light would be lost without a word (0.507 of path in the
+    scene this was found in): refused, naming the emitter and the range."""
+    scene = _two_lights(0.2)
+    ref = render(scene, mi.load_dict({"type": "path", "hide_emitters": True}), seed=1,
+                 spp=1024)
+    img = render(scene, mi.load_dict({"type": "partpm", "photon_count": 100_000,
+                                      "hide_emitters": True}), spp=16)
+    print(f"sampling_weight 0.2: mean ratio {img.mean() / ref.mean():.4f}")
+    assert abs(img.mean() / ref.mean() - 1) < 0.03
+    with pytest.raises(Exception) as e:
+        render(_two_lights(0.0), mi.load_dict({"type": "partpm", "photon_count": 1000}))
+    cause = e.value
+    while cause.__cause__ is not None:
+        cause = cause.__cause__
+    assert "emitter on shape 'panel' (AreaLight) has sampling_weight = 0" in str(cause)
+    assert "give it a sampling_weight > 0" in str(cause)
