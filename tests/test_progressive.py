@@ -365,3 +365,28 @@ def test_passes_converge_to_paths_image_with_any_reconstruction_filter(rfilter):
     err = np.abs(img - ref).sum() / ref.sum()
     print(f"{rfilter}: relative L1 against path {err:.4f}")
     assert err < (0.03 if rfilter == "gaussian" else 0.05)
+
+
+def test_cli_writes_the_films_channels_of_an_aov_integrator(tmp_path):
+    """A scene file whose integrator is Mitsuba's aov around partpm: the EXR holds the
+    channels Mitsuba's own film writes (colour, the nested image, the depth AOV by name),
+    not the first four squeezed into R, G, B, A; the PNG holds the colour only."""
+    text = (Path(mi_partpm.__file__).parent / "scenes" / "cornell_box.xml").read_text()
+    xml = tmp_path / "aov.xml"
+    xml.write_text(text.replace("<scene version=\"3.0.0\">", """<scene version="3.0.0">
+    <integrator type="aov">
+        <string name="aovs" value="dd:depth"/>
+        <integrator type="partpm"><integer name="photon_count" value="3000"/></integrator>
+    </integrator>""", 1))
+    out = tmp_path / "o.exr"
+    assert main(["render", str(xml), "--resolution", "12x12", "-o", str(out), "-q"]) == 0
+    scene = mi_partpm.load_scene(str(xml), resolution=(12, 12))
+    mi.render(scene)
+    own = tmp_path / "own.exr"
+    scene.sensors()[0].film().write(str(own))
+    names = [f.name for f in mi.Bitmap(str(out)).struct_()]
+    assert names == [f.name for f in mi.Bitmap(str(own)).struct_()]
+    assert names[:3] == ["R", "G", "B"] and "dd.T" in names and len(names) > 4
+    depth = np.array(mi.Bitmap(str(out)))[..., names.index("dd.T")]
+    assert np.all(depth > 0)          # the camera sees the box's walls everywhere
+    assert mi.Bitmap(str(out.with_suffix(".png"))).channel_count() == 3

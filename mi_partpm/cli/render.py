@@ -203,7 +203,7 @@ def run_render(args) -> int:
              " (the scene file's integrator)" if own else "")
     seconds = {"load": clock.lap()}
     if args.checkpoint_every:
-        integrator.on_pass = _checkpoints(args.checkpoint_every, out, integrator)
+        integrator.on_pass = _checkpoints(args.checkpoint_every, out, integrator, film)
     try:
         with _stop_on_interrupt(integrator):
             image = mi.render(scene, integrator=integrator, seed=args.seed)
@@ -216,7 +216,7 @@ def run_render(args) -> int:
     backend = getattr(integrator, "backend", None)
     if backend is not None and not backend.is_root:
         return 0    # rank 0 holds the gathered image and writes it
-    _write(args, out, image, stats, seconds, list(film.size()))
+    _write(args, out, image, film, stats, seconds)
     if not args.quiet:
         print(_summary(stats, seconds, out))
     return 0
@@ -275,35 +275,44 @@ class _stop_on_interrupt:
         return False
 
 
-def _checkpoints(every: int, out: Path, integrator):
+def _checkpoints(every: int, out: Path, integrator, film):
     """An ``on_pass`` that writes the image so far to ``out`` every ``every`` passes."""
     def on_pass(info):
         backend = getattr(integrator, "backend", None)
         if info["pass"] % every or (backend is not None and not backend.is_root):
             return
-        _write_image(out, info["image"]())
+        _write_image(out, info["image"](), film)
         log.info("checkpoint: pass %d written to %s", info["pass"], out)
     return on_pass
 
 
-def _write(args, out: Path, image, stats: dict, seconds: dict, resolution):
+def _write(args, out: Path, image, film, stats: dict, seconds: dict):
     from ..experiments.provenance import code_version
     if args.stats_json:
         write_atomic(args.stats_json, lambda name: Path(name).write_text(json.dumps(
             {"time_load": seconds["load"], "time_render": seconds["render"],
              "scene": args.scene, "integrator": args.integrator, "backend": args.backend,
-             "resolution": resolution, "code": code_version(), **stats}, indent=2,
+             "resolution": list(film.size()), "code": code_version(), **stats}, indent=2,
             default=str) + "\n"))
-    _write_image(out, image)
+    _write_image(out, image, film)
 
 
-def _write_image(out: Path, image):
-    """The EXR and the PNG beside it, each written whole or not at all (see
-    :func:`~.common.write_atomic`): a checkpoint may be read while the render goes on."""
+def _write_image(out: Path, image, film):
+    """The EXR with the film's channels (R, G, B, alpha where the film has it, then the
+    AOVs by name, as Mitsuba's own film writes them) and the PNG beside it (the colour and
+    alpha only), each written whole or not at all (see :func:`~.common.write_atomic`): a
+    checkpoint may be read while the render goes on."""
     import mitsuba as mi
-    write_atomic(out, lambda name: mi.Bitmap(image).write(name))
+    import numpy as np
+    bitmap = film.bitmap()          # what ``image`` was developed from, with channel names
+    names = [field.name for field in bitmap.struct_()]
+    colour = next((i for i, name in enumerate(names) if "." in name), len(names))
+    write_atomic(out, lambda name: bitmap.write(name))
+    pixels = np.array(image)
+    if pixels.ndim == 3 and pixels.shape[2] > colour:
+        pixels = pixels[..., :colour]
     write_atomic(out.with_suffix(".png"),
-                 lambda name: mi.util.write_bitmap(name, image, write_async=False))
+                 lambda name: mi.util.write_bitmap(name, pixels, write_async=False))
 
 
 def _summary(stats: dict, seconds: dict, out: Path) -> str:
