@@ -176,10 +176,18 @@ def check_emitters(scene: mi.Scene, samples: int = 1024):
     rng = np.random.default_rng(0)
     s = [mi.Float(np.asarray(a, np.float32)) for a in (u, *rng.random((4, samples)))]
     for emitter in scene.emitters():
-        _, weight = emitter.sample_ray(0.0, s[0], mi.Point2f(s[1], s[2]),
-                                       mi.Point2f(s[3], s[4]), True)
-        w = np.atleast_2d(np.array(mi.Spectrum(weight)))
         name = _emitter_name(emitter)
+        try:
+            _, weight = emitter.sample_ray(0.0, s[0], mi.Point2f(s[1], s[2]),
+                                           mi.Point2f(s[3], s[4]), True)
+            w = np.atleast_2d(np.array(mi.Spectrum(weight)))
+        except RuntimeError as e:
+            reason = " ".join(str(e).split())
+            hint = ("its radiance is a texture Mitsuba can evaluate but not sample emission "
+                    "from (a procedural one, such as checkerboard): give it a bitmap texture"
+                    if "not implemented" in reason else "photon mapping needs sample_ray")
+            raise ValueError(f"emitter {name} cannot emit photons (Mitsuba: {reason}); "
+                             f"{hint}") from None
         if not np.all(np.isfinite(w)):
             raise ValueError(f"emitter {name} emits non-finite power (NaN or inf): its "
                              f"radiance / intensity must be finite and >= 0")

@@ -107,3 +107,20 @@ def test_a_sampling_weight_changes_how_many_photons_an_emitter_emits_not_its_lig
         cause = cause.__cause__
     assert "emitter on shape 'panel' (AreaLight) has sampling_weight = 0" in str(cause)
     assert "give it a sampling_weight > 0" in str(cause)
+
+
+def test_an_emitter_whose_texture_cannot_be_sampled_is_named():
+    """Mitsuba 3.9.1 evaluates a checkerboard radiance (path renders it) but cannot sample
+    emission from it: the error names the emitter and suggests a bitmap."""
+    scene = small_scene([0, 2, 3], [0, 0, 0], size=8,
+                        floor={"type": "rectangle", "bsdf": {"type": "diffuse"}},
+                        panel={"type": "rectangle", "to_world": mi.ScalarTransform4f().translate(
+                            [0, 1, 0]).rotate([1, 0, 0], 90),
+                               "emitter": {"type": "area", "radiance": {"type": "checkerboard"}}})
+    with pytest.raises(Exception) as e:
+        render(scene, mi.load_dict({"type": "partpm", "photon_count": 1000}))
+    cause = e.value
+    while cause.__cause__ is not None:
+        cause = cause.__cause__
+    assert "emitter on shape 'panel' (AreaLight) cannot emit photons" in str(cause)
+    assert "give it a bitmap texture" in str(cause)
