@@ -166,7 +166,11 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
     if out.exists() and not out.is_dir():
         raise ValueError(f"the output folder {out} is a file: the report writes a folder of "
                          f"files")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"the output folder {out} cannot be made: {e.strerror or e}") \
+            from None
     rows, detail = _per_n(config, loads)
     n_max = max(loads)
     pes = [2 ** i for i in range(n_max.bit_length()) if 2 ** i <= n_max]

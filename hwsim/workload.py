@@ -15,6 +15,7 @@ NumPy and JSON only: hwsim never imports Mitsuba.
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -119,7 +120,15 @@ def _load_map_workloads(path: Path, n: int, meta: dict) -> MapWorkloads:
         raise ValueError(f"{path} is missing (listed in meta.json's files)")
     q = meta["queries"]
     arrays = {}
-    with np.load(path) as z:
+    try:
+        z = np.load(path)
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+        raise ValueError(f"{path} is not a workload file (a NumPy .npz written by "
+                         f"'partpm speedup'; format in hwsim/WORKLOAD.md): {e}") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ValueError(f"{path} is a single NumPy array, not a workload file (an .npz of "
+                         f"the arrays in hwsim/WORKLOAD.md)")
+    with z:
         for k, kind in _ARRAYS.items():
             if k not in z:
                 raise ValueError(f"{path}: {k} is missing (format in hwsim/WORKLOAD.md)")

@@ -75,10 +75,18 @@ def _proc_bytes(path: str, key: str) -> Optional[int]:
 
 
 def available_bytes() -> Optional[int]:
-    """Free memory (``MemAvailable``), or None where it cannot be read."""
+    """Free memory (``MemAvailable``, or ``PARTPM_MEMORY_LIMIT`` where it is set: a
+    ValueError where that is not a number >= 1), or None where it cannot be read."""
     override = os.environ.get("PARTPM_MEMORY_LIMIT")
     if override:
-        return int(float(override))
+        try:
+            value = float(override)
+        except ValueError:
+            value = float("nan")
+        if not (1 <= value < float("inf")):
+            raise ValueError(f"PARTPM_MEMORY_LIMIT (the free memory to assume, in bytes) "
+                             f"must be a number >= 1, e.g. 8e9; got {override!r}")
+        return int(value)
     return _proc_bytes("/proc/meminfo", "MemAvailable")
 
 

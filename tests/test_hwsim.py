@@ -831,6 +831,19 @@ def test_hwsim_cli_points_at_the_workloads_folder_and_refuses_a_file_as_out(tmp_
     assert f"the output folder {taken} is a file" in capsys.readouterr().err
 
 
+def test_hwsim_cli_names_a_workload_file_that_is_not_one(tmp_path, capsys):
+    """A damaged or foreign .npz: one line naming the file and the format, not NumPy's
+    zipfile traceback or its advice to unpickle."""
+    from mi_partpm.cli import main
+    workloads = _synthetic_dir(tmp_path)
+    victim = sorted(workloads.glob("*.npz"))[-1]
+    victim.write_bytes(b"not a zip")
+    assert main(["hwsim", str(workloads), "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert f"{victim} is not a workload file (a NumPy .npz written by 'partpm speedup'" in err
+    assert "Traceback" not in err
+
+
 def test_integer_keys_given_as_whole_floats_are_integers(tmp_path):
     path = tmp_path / "hw.toml"
     path.write_text("tile_queries = 256.0\n[memory]\ndram_channels = 2.0\nsram_bytes = 2e6\n")

@@ -136,12 +136,21 @@ def test_a_render_with_a_sample_count_of_0_is_refused_not_a_crash():
      r"--config '.*/none.toml' is not a file"),
     (["scaling", "cornell_box", "--ranks", "1", "--hostfile", "{tmp}/hosts", "--out",
       "{tmp}/new"], r"--hostfile '.*/hosts' is not a file"),
+    (["calibrate", "cornell_box", "--out", "{tmp}/file/out"],
+     r"--out '.*/file/out' cannot be made: '.*/file' is a file, not a folder"),
+    (["figures", "--only", "hwsim", "--out", "{tmp}/file/out"],
+     r"--out '.*/file/out' cannot be made: '.*/file' is a file, not a folder"),
+    (["hwsim", "{tmp}/workloads", "--out", "{tmp}/file/out"],
+     r"the output folder .*/file/out cannot be made: Not a directory"),
 ])
 def test_cli_refuses_outputs_and_inputs_it_cannot_use_before_any_work(tmp_path, capsys, argv,
                                                                        message):
     """Each is refused in one line naming the option, exit status 2, and no output folder is
     made (they failed after the work, with raw OS errors, mpiexec's, or a traceback)."""
     (tmp_path / "file").write_text("")
+    if "{tmp}/workloads" in argv:
+        from test_hwsim import _synthetic_dir
+        _synthetic_dir(tmp_path)
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
@@ -541,3 +550,15 @@ def test_knn_query_matches_brute_force(points, k, seed):
     # The indices name photons at those distances (ties may pick either).
     got = np.linalg.norm(points[idx[:, :kk]].astype(np.float64) - queries[:, None], axis=2)
     np.testing.assert_allclose(got, dist[:, :kk], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("value", ["abc", "-5", "0", "inf"])
+def test_a_memory_limit_that_is_not_a_size_is_named(tmp_path, capsys, monkeypatch, value):
+    """PARTPM_MEMORY_LIMIT stands in for the free memory: 'abc' gave Python's "could not
+    convert string to float", -5 a refusal that blamed photon_count for -0.00 GB free."""
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", value)
+    assert main(["render", "cornell_box", "--photons", "1000", "--resolution", "8x8", "-o",
+                 str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err
+    assert "PARTPM_MEMORY_LIMIT (the free memory to assume, in bytes) must be a number >= 1" \
+        in err and repr(value) in err

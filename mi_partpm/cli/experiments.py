@@ -139,6 +139,7 @@ def run_calibrate(args) -> int:
                              f"{len(COST_NAMES) + 1} measured maps per scene; --leaf-sizes x "
                              f"--radius-fractions x the sum of --maps gives {len(leaves)} x "
                              f"{len(fracs)} x {sum(maps)} = {measured}: give more of any")
+        check_folder(args.out, "--out")
         try:
             result = cal.run_calibrations(
                 args.scene, args.out, leaves, fracs, maps, int_list("--photons", args.photons),

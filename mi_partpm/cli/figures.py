@@ -2,7 +2,7 @@
 (:mod:`mi_partpm.experiments.regenerate`)."""
 from __future__ import annotations
 
-from .common import UsageError, progress
+from .common import UsageError, check_folder, progress
 
 __all__ = ["run_figures"]
 
@@ -14,6 +14,8 @@ def run_figures(args) -> int:
         f" {flag}" for flag, on in (("--smoke", args.smoke), ("--list", args.list)) if on)
     if args.out:
         argv += f" --out {args.out}"
+        if not args.list:
+            check_folder(args.out, "--out")
     if only:
         argv += f" --only {','.join(only)}"
     try:
