@@ -243,7 +243,12 @@ def _check_ranks(integrator, name: str):
 class _stop_on_interrupt:
     """During a progressive render, the first Ctrl-C asks the integrator to stop after the
     pass it is in (the image of the passes so far is then written as usual); a second one
-    interrupts at once. Other renders keep Python's Ctrl-C."""
+    ends the process at once (``partpm: interrupted``, exit status 130). Other renders keep
+    Python's Ctrl-C.
+
+    Python runs a signal handler only between bytecodes, and a pass spends seconds inside
+    one Dr.Jit kernel: the signals are read instead from a wakeup pipe (written by the
+    C-level handler as they come) by a thread, which says so and stops at once."""
 
     def __init__(self, integrator):
         self.integrator = integrator
@@ -255,22 +260,49 @@ class _stop_on_interrupt:
             threading.current_thread() is threading.main_thread() and \
             signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
 
-    def _handler(self, signum, frame):
-        if self.asked:
-            raise KeyboardInterrupt
-        self.asked = True
-        log.warning("Ctrl-C: stopping after this pass and writing the image of the passes "
-                    "so far (Ctrl-C again to stop at once, with no image)")
+    def _watch(self, fd: int):
+        import os
+        import sys
+        while True:
+            try:
+                data = os.read(fd, 64)
+            except OSError:
+                return
+            if not data:                       # the pipe was closed: the render is over
+                return
+            for signum in data:
+                if signum != signal.SIGINT:
+                    continue
+                if self.asked:
+                    sys.stderr.write("partpm: interrupted\n")
+                    sys.stderr.flush()
+                    os._exit(130)
+                self.asked = True
+                log.warning("Ctrl-C: stopping after this pass and writing the image of the "
+                            "passes so far (Ctrl-C again to stop at once, with no image)")
 
     def __enter__(self):
         if self.active:
-            self.previous = signal.signal(signal.SIGINT, self._handler)
+            import os
+            self.read_fd, self.write_fd = os.pipe()
+            os.set_blocking(self.write_fd, False)
+            # The Python-level handler does nothing: the watcher thread acts on the signal.
+            self.previous = signal.signal(signal.SIGINT, lambda signum, frame: None)
+            self.previous_fd = signal.set_wakeup_fd(self.write_fd, warn_on_full_buffer=False)
+            self.watcher = threading.Thread(target=self._watch, args=(self.read_fd,),
+                                            name="partpm-ctrl-c", daemon=True)
+            self.watcher.start()
             self.integrator.stop_requested = lambda: self.asked
         return self
 
     def __exit__(self, *exc):
         if self.active:
+            import os
+            signal.set_wakeup_fd(self.previous_fd)
             signal.signal(signal.SIGINT, self.previous)
+            os.close(self.write_fd)           # the watcher reads the end and returns
+            self.watcher.join(timeout=5)
+            os.close(self.read_fd)
             self.integrator.stop_requested = None
         return False
 
