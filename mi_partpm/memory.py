@@ -170,9 +170,10 @@ def check_fits(estimate: MemoryEstimate, what: str = "this render"):
         # The eye pass alone does not fit: fewer photons would not help.
         share = max(free * 0.9 / max(estimate.eye, 1), 0.0)
         raise MemoryGuardError(
-            f"{what} needs about {estimate.describe()}, but only {free / 1e9:.2f} GB are "
-            f"free, less than its eye pass alone: lower the resolution or spp (to about "
-            f"{share:.2g} of the samples per image here)")
+            f"the eye pass (the camera's samples) alone needs about "
+            f"{estimate.eye / 1e9:.2f} GB, but only {free / 1e9:.2f} GB are free: lower the "
+            f"resolution or spp (to about {share:.2g} of the samples per image here); fewer "
+            f"photons would not help (their maps take {estimate.photon_maps / 1e9:.2f} GB)")
     fraction = (free - estimate.eye) / max(estimate.photon_maps, 1)
     raise MemoryGuardError(
         f"{what} needs about {estimate.describe()}, but only {free / 1e9:.2f} GB are free: "

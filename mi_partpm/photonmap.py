@@ -183,7 +183,8 @@ def fixed_radius(scene: mi.Scene, radius, radius_fraction: float,
         raise ValueError("the scene's bounding box is empty: give radius explicitly")
     if radius_fraction * longest < MIN_RADIUS:
         source = source or f"{names[1]} = {radius_fraction:g}"
-        raise ValueError(f"the {names[0]}, {source} of the scene's size {longest:g}, is "
+        subject = {"caustic_radius": "caustic maps' radius"}.get(names[0], names[0])
+        raise ValueError(f"the {subject}, {source} of the scene's size {longest:g}, is "
                          f"{radius_fraction * longest:.3g}: {below_min_radius()} (raise "
                          f"{names[1]} or give {names[0]})")
     return radius_fraction * longest

@@ -235,3 +235,13 @@ def test_figures_list_and_bad_only(tmp_path, capsys):
     assert not any(tmp_path.iterdir())              # --list runs and writes nothing
     assert main(["figures", "--smoke", "--out", str(tmp_path), "--only", "nope"]) == 2
     assert "--only: no step or group 'nope'" in capsys.readouterr().err
+
+
+def test_figures_help_names_every_group_of_steps():
+    """--only takes a step's name or its group (the name up to the first underscore); the
+    help lists the groups by hand, and left out calibrate and large when they came."""
+    from mi_partpm.cli.parser import build_parser
+    sub = build_parser()._subparsers._group_actions[0].choices["figures"]
+    only = next(a for a in sub._actions if "--only" in a.option_strings)
+    groups = {step.group for step in regenerate.steps()}
+    assert groups and all(g in only.help for g in groups), (groups, only.help)

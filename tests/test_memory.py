@@ -83,9 +83,9 @@ def test_memory_guard_stops_an_oversize_request_before_tracing(monkeypatch, caps
                  "--resolution", "16x16", "-o", str(tmp_path / "x.exr")]) == 2
     err = capsys.readouterr().err
     print(err.strip().splitlines()[-1])
-    assert "photon_count = 2000000 needs about" in err
-    assert "only 0.05 GB are free: lower photon_count" in err
-    assert "raise map_count" in err
+    assert "--photons 2000000 needs about" in err
+    assert "only 0.05 GB are free: lower --photons" in err
+    assert "raise --maps" in err
     assert "trace: emitting" not in err                   # stopped before any tracing
 
 
@@ -97,8 +97,9 @@ def test_an_eye_pass_too_large_alone_asks_for_fewer_samples(monkeypatch, capsys,
     assert main(["render", "cornell_box", "--photons", "1000", "--maps", "1", "--spp", "64",
                  "--resolution", "480x480", "-o", str(tmp_path / "x.exr")]) == 2
     err = capsys.readouterr().err
-    assert "less than its eye pass alone: lower the resolution or spp" in err
-    assert "lower photon_count" not in err
+    assert "the eye pass (the camera's samples) alone needs about" in err
+    assert "are free: lower the resolution or spp" in err
+    assert "lower --photons" not in err
 
 
 def test_many_small_maps_fit_where_one_large_map_does_not(monkeypatch):

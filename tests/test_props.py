@@ -105,7 +105,7 @@ SMALL = ["render", "cornell_box", "--resolution", "8x8", "--spp", "1", "--photon
     (["render", "cornell_box"], "needs -o"),
     (["render", "cornell_box", "-o", "x.png"], "must name an .exr"),
     (["render", "cornell_box", "--maps", "20", "--photons", "10", "-o", "x.exr"],
-     r"map_count must be an integer in \[1, photon_count = 10\], got 20"),
+     r"--maps must be an integer in \[1, --photons 10\], got 20"),
     (["render", "cornell_box", "--variant", "scalar_rgb", "-o", "x.exr"],
      "--variant llvm_ad_rgb"),
     # Options that would do nothing, and outputs that could not be written, are refused
@@ -119,21 +119,22 @@ SMALL = ["render", "cornell_box", "--resolution", "8x8", "--spp", "1", "--photon
     (["render", "cornell_box", "-o", "/proc/no_such_dir/x.exr"], "-o .* cannot be written"),
     # Radii whose squares float32 cannot compare, refused before any photon is traced.
     ([*SMALL, "--passes", "2", "--alpha", "1e-35", "-o", "x.exr"],
-     r"alpha = 1e-35 shrinks the radius 0.05 to 1.58e-19 in the first pass, below 1e-15"),
+     r"--alpha 1e-35 shrinks the radius 0.05 to 1.58e-19 in the first pass, below 1e-15.*"
+     r"raise --alpha"),
     ([*SMALL, "--radius", "2e-15", "--caustic-photons", "100", "-o", "x.exr"],
-     r"the caustic maps' radius, a quarter of radius = 2e-15, is 5e-16: below 1e-15"),
+     r"the caustic maps' radius, a quarter of --radius 2e-15, is 5e-16: below 1e-15"),
     ([*SMALL, "--passes", "100", "--alpha", "0.01", "--final-gather", "1", "--direct", "nee",
-      "-o", "x.exr"], r"alpha = 0.01 shrinks the final gather's radius 0.05 to .* by pass 100"),
+      "-o", "x.exr"], r"--alpha 0.01 shrinks the final gather's radius 0.05 to .* by pass 100"),
     ([*SMALL, "--radius-fraction", "1e-20", "-o", "x.exr"],
-     r"the radius, radius_fraction = 1e-20 of the scene's size 2, is 2e-20: below 1e-15, the "
-     r"least radius whose squared distances float32 resolves \(raise radius_fraction or give "
-     r"radius\)"),
+     r"the radius, --radius-fraction 1e-20 of the scene's size 2, is 2e-20: below 1e-15, the "
+     r"least radius whose squared distances float32 resolves \(raise --radius-fraction or "
+     r"give --radius\)"),
     ([*SMALL, "--caustic-photons", "100", "--caustic-radius-fraction", "1e-20", "-o", "x.exr"],
-     r"the caustic_radius, caustic_radius_fraction = 1e-20 of the scene's size 2, is 2e-20: "
-     r".*\(raise caustic_radius_fraction or give caustic_radius\)"),
+     r"the caustic maps' radius, --caustic-radius-fraction 1e-20 of the scene's size 2, is "
+     r"2e-20: .*\(raise --caustic-radius-fraction or give --caustic-radius\)"),
     ([*SMALL, "--caustic-photons", "100", "--radius-fraction", "1.6e-15", "-o", "x.exr"],
-     r"the caustic_radius, a quarter of radius_fraction = 1.6e-15 of the scene's size 2, is "
-     r"8e-16: .*\(raise radius_fraction or give caustic_radius\)"),
+     r"the caustic maps' radius, a quarter of --radius-fraction 1.6e-15 of the scene's size "
+     r"2, is 8e-16: .*\(raise --radius-fraction or give --caustic-radius\)"),
     (["render", "cornell_box", "-o", "x.exr", "--stats-json", "/proc/x.json"],
      "--stats-json .* cannot be written"),
 ])

@@ -10,8 +10,9 @@ from ..backends import interrupted  # noqa: F401  (the command line's name for i
 from ..props import check_float, check_int
 
 __all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
-           "int_list", "setup", "progress", "last_line", "interrupted", "write_atomic",
-           "check_writable", "check_folder", "check_scene_name", "check_variant_name"]
+           "radius_float", "int_list", "setup", "progress", "last_line", "interrupted",
+           "write_atomic", "check_writable", "check_folder", "check_scene_name",
+           "check_variant_name"]
 
 
 class UsageError(Exception):
@@ -68,6 +69,14 @@ def positive_float(name, high=None, high_open=False):
     checked as the props are."""
     return _argument_type(float, lambda v: check_float(name, v, low=0.0, high=high,
                                                        high_open=high_open))
+
+
+def radius_float(name):
+    """An argparse type for a radius in world units: the range the props take."""
+    from ..kdtree.radius import MIN_RADIUS
+    from ..props import MAX_RADIUS
+    return _argument_type(float, lambda v: check_float(name, v, low=MIN_RADIUS,
+                                                       high=MAX_RADIUS, low_open=False))
 
 
 def int_list(option, text):

@@ -4,34 +4,54 @@ from __future__ import annotations
 import argparse
 
 from ..kdtree.knn import MAX_K
-from .common import parse_resolution, positive_float, positive_int, seed_int
+from .common import parse_resolution, positive_float, positive_int, radius_float, seed_int
 
 __all__ = ["build_parser"]
 
 
-def _scene_options(p, maps_default=8):
-    """Options shared by the subcommands that render a scene."""
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose errors are one line: the error, and where the options are
+    listed (not the whole usage); ``argument --x: --x must ...`` says --x once."""
+
+    def error(self, message):
+        import re
+        found = re.match(r"argument (\S+?)(?:/\S+)?: (.*)", message)
+        if found and found.group(2).startswith(found.group(1)):
+            message = found.group(2)
+        self.exit(2, f"{self.prog}: error: {message} ('{self.prog} --help' lists the "
+                     f"options)\n")
+
+
+def _scene_options(p, compare: bool = False):
+    """Options shared by the subcommands that render a scene (render, compare)."""
     p.add_argument("scene", nargs="?", help="built-in scene name or Mitsuba XML file")
     p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
     p.add_argument("--maps", type=positive_int("--maps"),
-                   help=f"number of partial photon maps n (default {maps_default})")
+                   help="number of partial photon maps n, in [1, --photons] (default 8)")
     p.add_argument("--photons", type=positive_int("--photons"), default=100_000,
-                   help="photons emitted in total N (default 100000)")
+                   help="photons emitted in total N, >= 1 (default 100000)")
     p.add_argument("--k", type=positive_int("--k", 2, MAX_K),
-                   help=f"photons per kNN estimate of pm, in [2, {MAX_K}] (default 50; "
-                        f"compare: the k whose mean radius matches partpm's)")
+                   help=f"photons per kNN estimate of pm, in [2, {MAX_K}] " + (
+                       "(default: the k whose mean radius matches partpm's)" if compare
+                       else "(default 50)"))
     p.add_argument("--direct", choices=("photons", "nee"), default="photons",
-                   help="direct light from the maps (paper) or by emitter sampling")
+                   help="direct light from the maps (the paper's) or by emitter sampling "
+                        "(default photons)")
     p.add_argument("--spp", type=positive_int("--spp"),
-                   help="samples per pixel (default: the scene's; 4 for compare)")
+                   help="samples per pixel, >= 1 " + (
+                       "(default 4)" if compare else "(default: the scene's; 4 for the "
+                                                     "built-in ones)"))
     p.add_argument("--resolution", type=parse_resolution,
-                   help="film size WxH, e.g. 480x480 (default: the scene's, 480x480 for the "
-                        "built-in ones)")
-    p.add_argument("--seed", type=seed_int(), default=0, help="seed of photons and eye samples")
+                   help="film size WxH, e.g. 480x480 " + (
+                       "(default 480x480)" if compare else "(default: the scene's, 480x480 "
+                                                           "for the built-in ones)"))
+    p.add_argument("--seed", type=seed_int(), default=0,
+                   help="seed of photons and eye samples, in [0, 2^32) (default 0)")
     p.add_argument("--data", metavar="DIR",
                    help="directory of scene data such as happy_buddha_20k.ply "
                         "(default: $PARTPM_DATA, else the package's copy)")
-    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
+    p.add_argument("--variant", default="llvm_ad_rgb",
+                   help="Mitsuba variant (default llvm_ad_rgb)")
     p.add_argument("-q", "--quiet", action="store_true", help="print only errors")
 
 
@@ -49,9 +69,9 @@ def _size_options(p, spp, repeats, repeats_help):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="partpm", description=(
+    parser = _Parser(prog="partpm", description=(
         "Partitioned photon maps for Mitsuba 3 (Tamura, Takizawa, Kobayashi)."))
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _render_options(sub)
     _experiment_options(sub)
     _figures_options(sub)
@@ -67,30 +87,33 @@ def _render_options(sub):
                    help="the renderer (default partpm; a scene file's own <integrator> when no "
                         "integrator option is given)")
     g = r.add_mutually_exclusive_group()
-    g.add_argument("--radius", type=positive_float("--radius"),
-                   help="search radius in world units (partpm)")
+    g.add_argument("--radius", type=radius_float("--radius"),
+                   help="search radius in world units (partpm), in [1e-15, 1e18] (default: "
+                        "--radius-fraction of the scene)")
     g.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
                    help="radius as a fraction of the scene's longest side (default 0.05; "
                         "0.025 for a progressive render: --passes > 1 or --time)")
     r.add_argument("--max-radius", type=positive_float("--max-radius"),
-                   help="cap of the kNN radius (pm; default: none)")
+                   help="cap of the kNN radius in world units (pm; default: none)")
     r.add_argument("--max-depth", type=int,
-                   help="longest light path in segments, as for Mitsuba's path (default -1: "
-                        "unlimited)")
+                   help="longest light path in segments, as for Mitsuba's path: -1 "
+                        "(unlimited, the default) or >= 1")
     r.add_argument("--passes", type=positive_int("--passes"),
-                   help="progressive passes of partpm (default 1: the paper's single pass)")
+                   help="progressive passes of partpm, >= 1 (default 1: the paper's single "
+                        "pass)")
     r.add_argument("--alpha", type=positive_float("--alpha", 1.0, high_open=True),
                    help="fraction of a pass's photons kept by the radius reduction, in (0, 1) "
                         "(default 0.7)")
     r.add_argument("--time", type=positive_float("--time"),
-                   help="stop after the pass during which this many seconds have passed "
-                        "(without --passes: passes until then)")
+                   help="stop after the pass during which this many seconds have passed, > 0 "
+                        "(without --passes: passes until then; default: no limit)")
     r.add_argument("--checkpoint-every", type=positive_int("--checkpoint-every"), metavar="K",
-                   help="write the image so far every K passes")
+                   help="write the image so far every K passes, K in [1, --passes] (default: "
+                        "only at the end)")
     _quality_options(r)
     r.add_argument("--backend", choices=("local", "mpi"), default="local",
-                   help="where the maps run: this process, or the ranks of an MPI job "
-                        "(mpiexec -n P partpm render ... --backend mpi)")
+                   help="where the maps run: this process (the default), or the ranks of an "
+                        "MPI job (mpiexec -n P partpm render ... --backend mpi)")
     r.add_argument("--stats-json", metavar="FILE",
                    help="also write the run's figures (per rank with --backend mpi) as JSON")
     r.add_argument("-o", "--output", help="output EXR file, required (a PNG is written beside "
@@ -103,11 +126,12 @@ def _quality_options(r):
     r.add_argument("--kernel", choices=KERNEL_NAMES,
                    help="density kernel over the search disc (default box, the paper's)")
     r.add_argument("--caustic-photons", type=positive_int("--caustic-photons"),
-                   help="photons per pass for caustic maps of their own (partpm; default: "
-                        "none)")
+                   help="photons per pass for caustic maps of their own, >= --maps "
+                        "(partpm; default: none)")
     g = r.add_mutually_exclusive_group()
-    g.add_argument("--caustic-radius", type=positive_float("--caustic-radius"),
-                   help="the caustic maps' radius in world units")
+    g.add_argument("--caustic-radius", type=radius_float("--caustic-radius"),
+                   help="the caustic maps' radius in world units, in [1e-15, 1e18] (default: "
+                        "a quarter of the global radius)")
     g.add_argument("--caustic-radius-fraction",
                    type=positive_float("--caustic-radius-fraction", 1.0),
                    help="the caustic maps' radius over the scene's longest side (default: a "
@@ -116,16 +140,17 @@ def _quality_options(r):
                    help="at glossy surfaces: estimate from the map there (default), or trace "
                         "on by BSDF sampling")
     r.add_argument("--glossy-samples", type=positive_int("--glossy-samples"),
-                   help="rays traced from an eye path's first glossy surface (with --glossy "
-                        "trace)")
+                   help="rays traced from an eye path's first glossy surface, >= 1 (with "
+                        "--glossy trace; default 1)")
     r.add_argument("--final-gather", type=positive_int("--final-gather"), metavar="RAYS",
-                   help="final gather rays per visible point (partpm, needs --direct nee)")
+                   help="final gather rays per visible point, >= 1 (partpm, needs --direct "
+                        "nee; default: no final gather)")
 
 
 def _experiment_options(sub):
     c = sub.add_parser("compare", help="pm vs partpm vs a path-traced reference "
                                        "(the paper's figures 7-12)")
-    _scene_options(c)
+    _scene_options(c, compare=True)
     c.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
                    default=0.05, help="r as a fraction of the scene's longest side "
                                       "(default 0.05, the paper's 1/20)")
@@ -134,7 +159,7 @@ def _experiment_options(sub):
     c.add_argument("--no-best", action="store_true",
                    help="skip partpm's best configuration (rendered beside the paper's by "
                         "default)")
-    c.add_argument("--out", help="output directory")
+    c.add_argument("--out", help="output directory, required (not with --list)")
 
     v = sub.add_parser("converge", help="error against wall time: progressive partpm, pm and "
                                         "Mitsuba's path against a path-traced reference")
@@ -269,9 +294,9 @@ def _figures_options(sub):
     f.add_argument("--out", help="where the runs go, one folder per step (default "
                                  "out/figures; with --smoke a new temporary folder)")
     f.add_argument("--only", metavar="NAME,...",
-                   help="only these steps or groups (demo, compare, speedup, hwsim, bench, "
-                        "scaling, converge, notebooks), and the steps they read; --list "
-                        "names them")
+                   help="only these steps or groups (demo, speedup, hwsim, compare, "
+                        "converge, scaling, bench, calibrate, large, notebooks), and the "
+                        "steps they read; --list names them")
     f.add_argument("--smoke", action="store_true",
                    help="tiny sizes; writes nothing into docs/, notebooks/ or README.md (a "
                         "README copy with its blocks filled, the images and the provenance "

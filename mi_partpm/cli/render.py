@@ -27,6 +27,35 @@ def _options(names, negated: bool = False) -> str:
     return f"{', '.join(names)} {verb}"
 
 
+#: The integrator props the render options set, by option.
+PROP_OPTIONS = {"photon_count": "--photons", "map_count": "--maps", "max_depth": "--max-depth",
+                "radius_fraction": "--radius-fraction", "max_radius": "--max-radius",
+                "time_limit": "--time", "caustic_photon_count": "--caustic-photons",
+                "caustic_radius_fraction": "--caustic-radius-fraction",
+                "caustic_radius": "--caustic-radius", "glossy_samples": "--glossy-samples",
+                "final_gather": "--final-gather", "radius": "--radius", "passes": "--passes",
+                "alpha": "--alpha", "direct": "--direct", "kernel": "--kernel",
+                "glossy": "--glossy", "k": "--k"}
+
+
+def in_options(message: str) -> str:
+    """A message of the integrator's, about its props, in the options that set them:
+    ``photon_count = 100`` becomes ``--photons 100``, ``max_depth must`` ``--max-depth
+    must``. Props of one word (radius, passes, ...) are replaced only before ``=`` or
+    ``must`` and after raise, lower or give, where they cannot be a word of the sentence."""
+    import re
+    for prop, option in PROP_OPTIONS.items():
+        if "_" in prop:
+            message = re.sub(rf"(?<![\w-]){prop} = ", f"{option} ", message)
+            message = re.sub(rf"(?<![\w-]){prop}(?!\w)", option, message)
+        else:
+            message = re.sub(rf"(?<![\w'-]){prop} = ", f"{option} ", message)
+            message = re.sub(rf"(?<![\w'-]){prop} must", f"{option} must", message)
+            message = re.sub(rf"\b(raise|lower|give) {prop}(?![\w'-])", rf"\1 {option}",
+                             message)
+    return message
+
+
 def integrator_desc(args) -> dict:
     """The ``mi.load_dict`` description of the integrator the options ask for (partpm
     unless ``--integrator`` names another)."""
@@ -177,7 +206,7 @@ def run_render(args) -> int:
         try:
             integrator = mi.load_dict(integrator_desc(args))
         except (ValueError, RuntimeError) as e:
-            raise UsageError(last_line(e)) from None
+            raise UsageError(in_options(last_line(e))) from None
     out = _output_path(args)           # after the options' checks: it makes the folders
     clock = Stopwatch()
     try:
@@ -210,7 +239,7 @@ def run_render(args) -> int:
     except (ValueError, RuntimeError, MemoryError) as e:
         if interrupted(e):
             raise KeyboardInterrupt from None
-        raise UsageError(last_line(e)) from None
+        raise UsageError(last_line(e) if own else in_options(last_line(e))) from None
     seconds["render"] = clock.lap(image)
     stats = getattr(integrator, "stats", {})
     backend = getattr(integrator, "backend", None)

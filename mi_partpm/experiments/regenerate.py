@@ -499,8 +499,9 @@ class _Pipeline:
 
 
 def _select(all_steps: dict, only: Optional[Sequence[str]]) -> list:
-    """The steps ``only`` names (step names or groups: demo, compare, speedup, hwsim, bench,
-    scaling, converge, notebooks) and the steps they read, in pipeline order."""
+    """The steps ``only`` names (step names or groups: the steps' names up to the first
+    underscore, demo, speedup, hwsim, ... large, notebooks) and the steps they read, in
+    pipeline order."""
     if not only:
         return list(all_steps)
     groups = {}
