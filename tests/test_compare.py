@@ -375,6 +375,15 @@ def test_compare_cli(tmp_path, capsys):
     assert result["best"]["final_gather"] == 16 and (tmp_path / "partpm_best.exr").is_file()
     assert result["best"]["caustic_radius_fraction"] == pytest.approx(0.05 / 2)
     assert 0 < result["worst_tile"]["share"] <= 1 and 0 <= result["worst_tile"]["share_other"] <= 1
+    # Again into the same folder without the best configuration: its files go (they were
+    # left beside this run's), and the reference says its progress chunk by chunk.
+    assert main(["compare", "cornell_box_diffuse", "--resolution", "16x16", "--photons",
+                 "5000", "--maps", "2", "--reference-spp", "300", "--no-best", "--out",
+                 str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert "path, chunk 1 of 2 (256 spp)" in text and "path, chunk 2 of 2 (44 spp)" in text
+    assert not (tmp_path / "partpm_best.exr").exists()
+    assert not (tmp_path / "diff_partpm_best_reference.png").exists()
     assert main(["compare", "cornell_box", "--resolution", "4x4", "--out", str(tmp_path)]) == 2
     assert "at least 7x7" in capsys.readouterr().err
 

@@ -136,6 +136,8 @@ def test_a_render_with_a_sample_count_of_0_is_refused_not_a_crash():
      r"--config '.*/none.toml' is not a file"),
     (["scaling", "cornell_box", "--ranks", "1", "--hostfile", "{tmp}/hosts", "--out",
       "{tmp}/new"], r"--hostfile '.*/hosts' is not a file"),
+    (["scaling", "cornell_box", "--ranks", "1", "--maps", "8", "--photons", "4", "--out",
+      "{tmp}/new"], r"--maps 8 is more than --photons 4"),
     (["calibrate", "cornell_box", "--out", "{tmp}/file/out"],
      r"--out '.*/file/out' cannot be made: '.*/file' is a file, not a folder"),
     (["figures", "--only", "hwsim", "--out", "{tmp}/file/out"],

@@ -163,6 +163,9 @@ def run_scaling(args) -> int:
     ranks = int_list("--ranks", args.ranks)
     if args.hostfile and not Path(args.hostfile).is_file():
         raise UsageError(f"--hostfile {args.hostfile!r} is not a file")
+    if args.maps > args.photons:
+        raise UsageError(f"--maps {args.maps} is more than --photons {args.photons}: every "
+                         f"map needs at least one photon")
     check_scene_name(args.scene)
     check_folder(args.out, "--out")
     extra = ["-f", args.hostfile] if args.hostfile else []

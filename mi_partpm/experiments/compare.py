@@ -35,6 +35,7 @@ from ..props import check_choice, check_float, check_int
 from ..scenes import check_scene, load_scene
 from ..timing import timed
 from .provenance import code_version
+from .reference import path_in_chunks
 
 __all__ = ["CompareSettings", "calibrate_k", "run_compare", "format_table"]
 
@@ -162,6 +163,10 @@ def _write(out: Path, name: str, img: np.ndarray):
                          write_async=False)
 
 
+#: Samples per pixel of one chunk of the path-traced reference (a line of progress each).
+REFERENCE_CHUNK_SPP = 256
+
+
 def run_compare(settings: CompareSettings, out_dir, progress=print) -> dict:
     """Render ``pm``, ``partpm`` and a ``path`` reference of one scene and compare them.
 
@@ -202,12 +207,9 @@ def run_compare(settings: CompareSettings, out_dir, progress=print) -> dict:
         images["partpm_best"], best, seconds["partpm_best"] = _render(scene, best_desc(s),
                                                                       s.seed)
         seconds["partpm_best_estimate"] = best.stats["time_estimate"]
-    say(f"[{steps}/{steps}] path reference: {s.reference_spp} "
-        f"spp ...")
-    ref_scene = load_scene(s.scene, resolution=s.resolution, spp=s.reference_spp,
-                           data_dir=s.data_dir, **s.extra)
-    img_ref, _, t_ref = _render(ref_scene, {"type": "path", "max_depth": -1},
-                                (s.seed + 1) % 2**32)     # mi.render's seeds are 32-bit
+    say(f"[{steps}/{steps}] path reference: {s.reference_spp} spp ...")
+    img_ref, t_ref = path_in_chunks(scene, s.reference_spp, s.seed + 1, REFERENCE_CHUNK_SPP,
+                                    say=say, label="      path")
     images["reference"] = img_ref
     result = {
         "settings": {**asdict(s), "resolution": list(s.resolution), "k": k},
@@ -248,7 +250,12 @@ def worst_tile(paper, pm, ref, best, block: int = 8) -> dict:
 
 
 def _report(out: Path, s: CompareSettings, images: dict, result: dict):
-    """Metrics of every pair into ``result``; images, heat maps, the sheet and metrics.json."""
+    """Metrics of every pair into ``result``; images, heat maps, the sheet and metrics.json.
+    A run without the best configuration removes its files of an earlier run in ``out``, so
+    that the folder holds this run's results only."""
+    if "partpm_best" not in images:
+        for name in ("partpm_best.exr", "partpm_best.png", "diff_partpm_best_reference.png"):
+            (out / name).unlink(missing_ok=True)
     for name, img in images.items():
         _write(out, name, img)
     names = {**PAIRS, **(BEST_PAIR if "partpm_best" in images else {})}

@@ -36,6 +36,7 @@ import numpy as np
 
 from . import metrics
 from .provenance import code_version, scene_digest
+from .reference import path_in_chunks
 from ..props import check_float, check_int
 from ..scenes import check_scene, load_scene
 from ..timing import timed
@@ -107,16 +108,8 @@ def path_reference(s: ConvergeSettings, out: Path, say) -> np.ndarray:
     if exr.is_file() and info.is_file() and json.loads(info.read_text()) == meta:
         say(f"reference: reusing {exr}")
         return _image(mi.Bitmap(str(exr)))
-    scene = _scene(s)
-    chunks = max(1, -(-s.reference_spp // CHUNK_SPP))
-    total = None
-    for c in range(chunks):
-        spp = min(CHUNK_SPP, s.reference_spp - c * CHUNK_SPP)
-        say(f"reference: path, chunk {c + 1} of {chunks} ({spp} spp)")
-        img = _image(mi.render(scene, integrator=mi.load_dict({"type": "path"}), spp=spp,
-                               seed=1_000_003 + s.seed * 10_007 + c)) * spp
-        total = img if total is None else total + img
-    ref = total / s.reference_spp
+    ref, _ = path_in_chunks(_scene(s), s.reference_spp, 1_000_003 + s.seed * 10_007,
+                            CHUNK_SPP, say=say, label="reference: path")
     mi.Bitmap(ref.astype(np.float32)).write(str(exr))
     info.write_text(json.dumps(meta, indent=2) + "\n")
     return ref
@@ -179,13 +172,7 @@ def _path(s: ConvergeSettings, ref, say) -> list:
 
     def render(spp):
         rendered.append(spp)
-        total, seconds = 0.0, 0.0
-        for chunk in range(-(-spp // PATH_CHUNK_SPP)):
-            n = min(PATH_CHUNK_SPP, spp - chunk * PATH_CHUNK_SPP)
-            img, t = timed(lambda: mi.render(scene, integrator=integrator, spp=n,
-                                             seed=s.seed + chunk))
-            total, seconds = total + _image(img) * n, seconds + t
-        return total / spp, seconds
+        return path_in_chunks(scene, spp, s.seed, PATH_CHUNK_SPP, integrator)
     rows = _doubling("path", s, ref, say, render, 1, "spp")
     most = max(rendered, default=0)
     if 4 * most > s.reference_spp:

@@ -53,6 +53,9 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
     for p in ranks:
         if p < 1 or p > maps:
             raise ValueError(f"every P in --ranks must be in [1, maps = {maps}], got {p}")
+    if maps > photons:
+        raise ValueError(f"--maps {maps} is more than --photons {photons}: every map needs at "
+                         f"least one photon")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mpiexec = find_mpiexec()
@@ -73,8 +76,8 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
             done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
                                   env=os.environ.copy())
             if done.returncode != 0:
-                raise RuntimeError(f"mpiexec -n {p} failed (exit {done.returncode}): "
-                                   f"{done.stderr.strip().splitlines()[-1:]}")
+                last = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
+                raise RuntimeError(f"mpiexec -n {p} failed (exit {done.returncode}): {last}")
             runs.append(json.loads(Path(f"{stem}.json").read_text()))
         image = _read_exr(out / f"P{p}_run0.exr")
         if first_image is None:
