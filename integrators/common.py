@@ -108,6 +108,12 @@ class PhotonMapper(mi.SamplingIntegrator):
             # Mitsuba's base class reads it first, with a message that gives no value.
             read_bool(props, "hide_emitters", False)
         super().__init__(props if props is not None else mi.Properties())
+        if props is not None and "samples_per_pass" in props:
+            # Mitsuba's base class takes it (path splits its samples into passes by it).
+            log.warning("samples_per_pass = %s is not used: %s traces every sample of a pass "
+                        "at once (its memory guard says when they would not fit, and what "
+                        "to lower); its passes are photon passes (passes, time_limit)",
+                        props["samples_per_pass"], type(self).__name__)
         self.radius = None
         self._layers = []
         self._stored_per_emitted = {}
@@ -119,6 +125,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         #: Called after every pass of a progressive render: True stops it there, as the time
         #: limit does (the command line's first Ctrl-C); the image has the passes so far.
         self.stop_requested = None
+        self._cancelled = False
         self.params = read_photon_map_params(props, fixed_radius=self.fixed_radius)
         self.map_count = 1
         self.backend = LocalBackend()
@@ -288,12 +295,20 @@ class PhotonMapper(mi.SamplingIntegrator):
                       "cpu_estimate": 0.0,
                       "time_reduce": 0.0, "reduce_bytes": 0}
 
+    def cancel(self):
+        """Mitsuba's request to stop a render (from another thread): a progressive render
+        ends after the pass in progress, with the image of the passes so far, as after
+        ``stop_requested``; the next render starts afresh."""
+        self._cancelled = True
+        super().cancel()
+
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         """Render: for every pass trace and build the maps, follow the eye paths, estimate at
         their visible points and gather; then develop the film. With ``backend="mpi"`` rank 0
         returns the image (its ``stats["ranks"]`` lists every rank's figures); the other
         ranks return an image without emission and direct light."""
         _wait_for_background_tasks()
+        self._cancelled = False
         with dr.suspend_grad():       # not differentiable (see render_backward)
             return self._render(scene, sensor, seed, spp, develop, evaluate)
 
@@ -480,7 +495,8 @@ class PhotonMapper(mi.SamplingIntegrator):
                 "mean_radius": float(dr.mean(dr.sqrt(state.r2))[0])
                 if hasattr(state, "r2") else None}
         timed_out = self.time_limit > 0 and elapsed >= self.time_limit
-        asked = self.stop_requested is not None and bool(self.stop_requested())
+        asked = self._cancelled or \
+            (self.stop_requested is not None and bool(self.stop_requested()))
         stop = (timed_out or asked) and done < self.passes
         if self.passes > 1:
             # Every process of the render stops after the same pass (the first whose clock

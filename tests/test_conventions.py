@@ -239,3 +239,12 @@ def test_a_render_right_after_background_image_writes_does_not_hang(tmp_path):
     except subprocess.TimeoutExpired:
         pytest.fail("the renders after background image writes did not end within 240 s")
     assert done.returncode == 0 and "done" in done.stdout, done.stdout + done.stderr
+
+
+def test_samples_per_pass_is_said_to_be_unused(caplog):
+    """Mitsuba's base class takes samples_per_pass (path renders its samples in passes of
+    that many); the photon mappers render a pass's samples at once, so they say so instead
+    of taking it in silence."""
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        mi.load_dict({"type": "partpm", "samples_per_pass": 4})
+    assert "samples_per_pass = 4 is not used" in caplog.text

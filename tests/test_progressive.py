@@ -164,6 +164,21 @@ def test_a_stop_request_ends_the_render_after_that_pass():
     assert integrator.stats["passes"] == 3 and np.isfinite(img).all() and img.mean() > 0.05
 
 
+def test_mitsubas_cancel_ends_the_render_after_that_pass_and_not_the_next_render():
+    """Integrator.cancel() (Mitsuba's stop request, from another thread) was ignored: a
+    progressive render now ends after the pass in progress; the next render runs whole.
+    Asked between passes 2 and 3 (in on_pass, which is told whether its pass is the last),
+    the render ends after pass 3."""
+    scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=1)
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 2000, "passes": 5})
+    integrator.on_pass = lambda info: integrator.cancel() if info["pass"] == 2 else None
+    img = render(scene, integrator)
+    assert integrator.stats["passes"] == 3 and img.mean() > 0.05
+    integrator.on_pass = None
+    render(scene, integrator)
+    assert integrator.stats["passes"] == 5
+
+
 @pytest.mark.parametrize("props, message", [
     ({"passes": 0}, r"passes must be an integer >= 1, got 0"),
     ({"alpha": 1.0}, r"alpha must be a finite number in \(0.0, 1.0\), got 1.0"),

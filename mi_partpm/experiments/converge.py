@@ -132,7 +132,7 @@ def _partpm(s: ConvergeSettings, ref, say) -> list:
                          "setting": f"{info['pass']} passes"})
             say(f"partpm: pass {info['pass']}, {info['elapsed']:.1f} s, relMSE {err:.5f}, "
                 f"mean radius {info['mean_radius']:.4g}")
-    integrator = mi.load_dict({**desc, "passes": 1_000_000, "time_limit": s.seconds})
+    integrator = mi.load_dict({**desc, "time_limit": s.seconds})     # passes until then
     integrator.on_pass = on_pass
     mi.render(scene, integrator=integrator, seed=s.seed)
     return rows

@@ -201,9 +201,10 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
     what = "the scene" if name is None else f"scene {name!r}"
     # The repair itself is made every time (it is cheap), the warning once per box.
     _warn_once(("box", str(true_box)), "Mitsuba's bounding box of %s leaves out shapes (it "
-               "merged shapes that share a BSDF into a mesh without a box): photon mapping "
-               "uses the box of their vertices, %s to %s%s", what, list(true_box.min),
-               list(true_box.max), ", also for the emitters at infinity" if infinite else "")
+               "merged shapes with the same or identical BSDFs into a mesh without a box): "
+               "photon mapping uses the box of their vertices, %s to %s%s; nothing to do",
+               what, list(true_box.min), list(true_box.max),
+               ", also for the emitters at infinity" if infinite else "", level=logging.INFO)
     if infinite:
         centre, half = true_box.center(), true_box.extents() * 0.5
         stand_in = mi.load_dict({"type": "scene", "box": {
@@ -217,11 +218,11 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
 _WARNED = set()
 
 
-def _warn_once(key, message: str, *args):
-    """``log.warning(message, *args)`` the first time ``key`` comes, and never again."""
+def _warn_once(key, message: str, *args, level: int = logging.WARNING):
+    """``log.log(level, message, *args)`` the first time ``key`` comes, and never again."""
     if key not in _WARNED:
         _WARNED.add(key)
-        log.warning(message, *args)
+        log.log(level, message, *args)
 
 
 def _sensor_name(sensor) -> str:
