@@ -401,7 +401,8 @@ def _format_contention(result, n) -> str:
     for label, p in result["contention_saturation_pe_count"].items():
         best = max((c for c in contention if _channels_label(c["dram_channels"]) == label),
                    key=lambda c: c["speedup"])
-        where = f"saturates at P = {p}" if p < n else f"still paying at P = {p} = n"
+        where = f"doubling past P = {p} gains under 5%" if p < n else \
+            f"still paying at P = {p} = n"
         parts.append(f"{label}: {where} (best speedup {best['speedup']:.1f} at "
                      f"P = {best['pe_count']})")
     traffic = sorted({round(_mb(c["dram_bytes"]), 1) for c in contention})

@@ -97,6 +97,21 @@ class Term:
     compute: Callable
 
 
+def _small_scene_hint(scene) -> str:
+    """Where a scene is tiny, the likelier cause of photons that land nowhere: Mitsuba offsets
+    rays by an epsilon that is not small against a scene 10^-4 across (its own light tracer
+    finds no surface there either)."""
+    from mi_partpm.scenes import scene_bounds
+    box = scene_bounds(scene)
+    if not box.valid():
+        return ""
+    longest = float(max(box.max[a] - box.min[a] for a in range(3)))
+    if longest >= 1e-2:
+        return ""
+    return (f", or it is too small ({longest:.2g} across) for Mitsuba's ray offsets, which "
+            f"then step over its surfaces (scale it up with a to_world scale)")
+
+
 class PhotonMapper(mi.SamplingIntegrator):
     """Base of the photon-mapping integrators (see the module's text)."""
 
@@ -393,7 +408,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                                                           eye.points.lane)
         return eye
 
-    def _warn_if_empty(self):
+    def _warn_if_empty(self, scene):
         stored = sum(v for k, v in self.stats.items() if k.endswith("photons_stored"))
         if stored == 0:
             depth = self._photon_depth()
@@ -410,7 +425,8 @@ class PhotonMapper(mi.SamplingIntegrator):
                             self.params.direct)
             else:
                 log.warning("no photon was stored: the scene has no surface with a non-delta "
-                            "BSDF lit by its emitters; only emitted light will show")
+                            "BSDF lit by its emitters%s; only emitted light will show",
+                            _small_scene_hint(scene))
 
     def _photon_pass(self, scene, terms, points, width: int, sensor=0, spp: int = 0,
                      render_seed: int = 0, pass_index: int = 0, waves=None):
@@ -441,7 +457,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                 for layer in self._layers:
                     layer.maps = None
         if pass_index == 0:
-            self._warn_if_empty()
+            self._warn_if_empty(scene)
         self.stats["waves"] = len(waves)
         arrays = self.backend.allreduce(sums, self.stats)
         if pass_index == 0:

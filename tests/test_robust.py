@@ -567,3 +567,23 @@ def test_a_memory_limit_that_is_not_a_size_is_named(tmp_path, capsys, monkeypatc
     err = capsys.readouterr().err
     assert "PARTPM_MEMORY_LIMIT (the free memory to assume, in bytes) must be a number >= 1" \
         in err and repr(value) in err
+
+
+def test_a_scene_too_small_for_mitsubas_ray_offsets_is_said_to_be(caplog):
+    """A room 6e-5 across: Mitsuba's ray offsets step over its surfaces, so no photon lands
+    (its ptracer is black too); the warning said only that nothing was lit."""
+    T = mi.ScalarTransform4f
+    s = 3e-5
+    scene = mi.load_dict({
+        "type": "scene",
+        "floor": {"type": "rectangle", "to_world": T().scale(s).rotate([1, 0, 0], -90),
+                  "bsdf": {"type": "diffuse"}},
+        "light": {"type": "rectangle", "to_world": T().scale(s).translate([0, 1, 0]).rotate(
+            [1, 0, 0], 90).scale(0.3), "emitter": {"type": "area", "radiance": 10.0}},
+        "cam": {"type": "perspective", "to_world": T().look_at(
+            origin=[0, s, 3 * s], target=[0, 0, 0], up=[0, 1, 0]), "near_clip": s / 100,
+            "film": {"type": "hdrfilm", "width": 8, "height": 8}}})
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        mi.render(scene, integrator=mi.load_dict({"type": "partpm", "photon_count": 2000}))
+    assert "no photon was stored" in caplog.text
+    assert "or it is too small (6e-05 across) for Mitsuba's ray offsets" in caplog.text
