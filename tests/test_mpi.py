@@ -114,7 +114,7 @@ def test_mpi_more_ranks_than_maps_is_a_clear_error(tmp_path):
     done = _mpi(3, "-m", "mi_partpm.cli", "render", "cornell_box", "--maps", "2",
                 "--resolution", "8x8", "--backend", "mpi", "-o", str(tmp_path / "x.exr"))
     assert done.returncode != 0
-    assert "the MPI job has 3 ranks but map_count is 2" in done.stderr
+    assert "the MPI job has 3 ranks but --maps is 2" in done.stderr
     # Every rank finds it; rank 0 alone says it (three copies ran together before).
     assert done.stderr.count("the MPI job has 3 ranks") == 1, done.stderr
 
