@@ -98,9 +98,9 @@ class Term:
 
 
 def _small_scene_hint(scene) -> str:
-    """Where a scene is tiny, the likelier cause of photons that land nowhere: Mitsuba offsets
-    rays by an epsilon that is not small against a scene 10^-4 across (its own light tracer
-    finds no surface there either)."""
+    """Where a scene is tiny (under 0.01 across), the likelier cause of photons that land
+    nowhere: Mitsuba offsets rays by an epsilon that is not small against a scene 10^-4
+    across (its own light tracer finds no surface there either)."""
     from mi_partpm.scenes import scene_bounds
     box = scene_bounds(scene)
     if not box.valid():
@@ -311,9 +311,9 @@ class PhotonMapper(mi.SamplingIntegrator):
                       "time_reduce": 0.0, "reduce_bytes": 0}
 
     def cancel(self):
-        """Mitsuba's request to stop a render (from another thread): a progressive render
-        ends after the pass in progress, with the image of the passes so far, as after
-        ``stop_requested``; the next render starts afresh."""
+        """Mitsuba's request to stop a render, made from Python (another thread, or
+        ``on_pass``): a progressive render ends after the pass in progress, with the image
+        of the passes so far, as after ``stop_requested``; the next render starts afresh."""
         self._cancelled = True
         super().cancel()
 

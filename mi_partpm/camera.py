@@ -14,9 +14,10 @@ pass, so a progressive render cannot weigh them by the reconstruction filter at 
 positions: with a filter other than the box it draws each pass's position from the filter
 instead (filter importance sampling, as pbrt does) and puts the samples into their own pixel.
 A filter with negative lobes (Lanczos, Mitchell, Catmull-Rom) gives the samples drawn there a
-weight of -1, carried by the eye ray's weight and the film's weight channel. The image
-converges to the same filtered image as Mitsuba's, whose samples are uniform in the pixel and
-splatted with the filter's weights.
+weight of -1, carried by the eye ray's weight and the film's weight channel, and one outside
+the crop window (unless the film samples its border) a weight of 0, as Mitsuba samples none
+there. The image converges to the same filtered image as Mitsuba's, whose samples are uniform
+in the pixel and splatted with the filter's weights.
 """
 from __future__ import annotations
 
@@ -92,6 +93,12 @@ class CameraPass:
             shift = mi.Vector2f(dist.sample(u.x), dist.sample(u.y))
             self.sample_pos = self.pixel + 0.5 + shift
             self.sign = dr.sign(rfilter.eval(shift.x)) * dr.sign(rfilter.eval(shift.y))
+            if not self.film.sample_border():
+                # Mitsuba samples the crop window only: a position outside it weighs 0.
+                low = mi.Vector2f(self.film.crop_offset())
+                high = low + mi.Vector2f(self.film.crop_size())
+                inside = dr.all((self.sample_pos >= low) & (self.sample_pos < high))
+                self.sign = dr.select(inside, self.sign, 0.0)
             self.sign_sum = self.sign_sum + self.sign
             dr.schedule(self.sign_sum)
         self.drawn += 1

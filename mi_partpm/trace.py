@@ -136,9 +136,10 @@ def _rotated_envmap(ray, envmap):
     the disc perpendicular to d, as Mitsuba's unrotated map does (the same point then)."""
     inverse, centre, radius = envmap
     m = mi.Matrix3f(inverse.astype(np.float32).tolist())
-    d = ray.d
-    local = dr.normalize(-(m @ d))
-    rel = (ray.o - mi.Point3f(centre)) / radius + d
+    d_global = ray.d                  # M (-d_l), as Mitsuba made it (of M's scale's length)
+    d = dr.normalize(d_global)
+    local = dr.normalize(-(m @ d_global))
+    rel = (ray.o - mi.Point3f(centre)) / radius + d_global
     frame = mi.Frame3f(local)
     offset = frame.to_local(rel)
     proper = mi.Frame3f(-d).to_world(mi.Vector3f(offset.x, offset.y, 0.0))
@@ -158,9 +159,9 @@ def emit(scene: mi.Scene, rng, photon_count: int, table, active=True):
     kind = dr.gather(mi.UInt32, table, dr.reinterpret_array(mi.UInt32, emitter), active)
     power = mi.Spectrum(weight) * dr.select(kind == 1, length, 1.0) / \
         dr.opaque(mi.Float, float(photon_count))
-    ray.d = ray.d / dr.select(length > 0, length, 1.0)
     if envmap is not None:
         ray.o = dr.select(kind == 2, _rotated_envmap(ray, envmap), ray.o)
+    ray.d = ray.d / dr.select(length > 0, length, 1.0)
     return ray, power
 
 

@@ -397,7 +397,7 @@ def test_passes_converge_to_paths_image_with_any_reconstruction_filter(rfilter):
     seeds 0-2: Gaussian 0.0100-0.0105, Lanczos (negative lobes: signed sample weights)
     0.0185-0.0198; when each path's mean over the passes was splatted once at the last
     pass's position (a box blur on top of the filter) 0.089-0.093 and 0.180-0.187. Bounds
-    0.03 and 0.05: three times what was measured, a third of the blur.
+    0.03 and 0.05: about three times what was measured, at most a third of the blur.
     """
     scene = _box_room(rfilter)
     ref = np.mean([render(scene, mi.load_dict({"type": "path"}), seed=100 + i, spp=256)

@@ -271,9 +271,9 @@ def _check_ranks(integrator, name: str):
 
 class _stop_on_interrupt:
     """During a progressive render, the first Ctrl-C asks the integrator to stop after the
-    pass it is in (the image of the passes so far is then written as usual); a second one
-    ends the process at once (``partpm: interrupted``, exit status 130). Other renders keep
-    Python's Ctrl-C.
+    pass it is in (the image of the passes so far is then written as usual); a second one,
+    or the first in any other render, ends the process at once (``partpm: interrupted``,
+    exit status 130).
 
     Python runs a signal handler only between bytecodes, and a pass spends seconds inside
     one Dr.Jit kernel: the signals are read instead from a wakeup pipe (written by the
@@ -282,11 +282,11 @@ class _stop_on_interrupt:
     def __init__(self, integrator):
         self.integrator = integrator
         self.asked = False
+        self.progressive = getattr(integrator, "passes", 1) > 1 and \
+            hasattr(integrator, "stop_requested")
         # Not where Ctrl-C was ignored on entry (a background job) or off the main thread
-        # (where Python cannot install a handler).
-        self.active = getattr(integrator, "passes", 1) > 1 and \
-            hasattr(integrator, "stop_requested") and \
-            threading.current_thread() is threading.main_thread() and \
+        # (where Python cannot install a handler): there Python's Ctrl-C stays.
+        self.active = threading.current_thread() is threading.main_thread() and \
             signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
 
     def _watch(self, fd: int):
@@ -302,10 +302,11 @@ class _stop_on_interrupt:
             for signum in data:
                 if signum != signal.SIGINT:
                     continue
-                if self.asked:
+                if self.asked or not self.progressive:
+                    sys.stdout.flush()
                     sys.stderr.write("partpm: interrupted\n")
                     sys.stderr.flush()
-                    os._exit(130)
+                    os._exit(130)     # (a temporary output being written may be left)
                 self.asked = True
                 log.warning("Ctrl-C: stopping after this pass and writing the image of the "
                             "passes so far (Ctrl-C again to stop at once, with no image)")
@@ -314,25 +315,42 @@ class _stop_on_interrupt:
         if self.active:
             import os
             self.read_fd, self.write_fd = os.pipe()
-            os.set_blocking(self.write_fd, False)
-            # The Python-level handler does nothing: the watcher thread acts on the signal.
-            self.previous = signal.signal(signal.SIGINT, lambda signum, frame: None)
-            self.previous_fd = signal.set_wakeup_fd(self.write_fd, warn_on_full_buffer=False)
-            self.watcher = threading.Thread(target=self._watch, args=(self.read_fd,),
-                                            name="partpm-ctrl-c", daemon=True)
-            self.watcher.start()
-            self.integrator.stop_requested = lambda: self.asked
+            self.previous, self.previous_fd = None, None
+            try:
+                os.set_blocking(self.write_fd, False)
+                # The Python-level handler does nothing: the watcher thread acts on it.
+                self.previous = signal.signal(signal.SIGINT, lambda signum, frame: None)
+                self.previous_fd = signal.set_wakeup_fd(self.write_fd,
+                                                        warn_on_full_buffer=False)
+                self.watcher = threading.Thread(target=self._watch, args=(self.read_fd,),
+                                                name="partpm-ctrl-c", daemon=True)
+                self.watcher.start()
+            except BaseException:
+                self._restore(joined=False)
+                raise
+            if self.progressive:
+                self.integrator.stop_requested = lambda: self.asked
         return self
+
+    def _restore(self, joined: bool = True):
+        """Python's handler first (a Ctrl-C from here on is Python's again), then the
+        wakeup fd; the pipe is closed once the watcher has seen its end."""
+        import os
+        if self.previous is not None:
+            signal.signal(signal.SIGINT, self.previous)
+        if self.previous_fd is not None:
+            signal.set_wakeup_fd(self.previous_fd)
+        os.close(self.write_fd)               # the watcher reads the end and returns
+        if joined:
+            self.watcher.join(timeout=5)
+        if not joined or not self.watcher.is_alive():
+            os.close(self.read_fd)
 
     def __exit__(self, *exc):
         if self.active:
-            import os
-            signal.set_wakeup_fd(self.previous_fd)
-            signal.signal(signal.SIGINT, self.previous)
-            os.close(self.write_fd)           # the watcher reads the end and returns
-            self.watcher.join(timeout=5)
-            os.close(self.read_fd)
-            self.integrator.stop_requested = None
+            self._restore()
+            if self.progressive:
+                self.integrator.stop_requested = None
         return False
 
 
@@ -367,7 +385,10 @@ def _write_image(out: Path, image, film):
     import numpy as np
     bitmap = film.bitmap()          # what ``image`` was developed from, with channel names
     names = [field.name for field in bitmap.struct_()]
-    colour = next((i for i, name in enumerate(names) if "." in name), len(names))
+    # The colour (R, G, B or Y) and the alpha the film has, before any AOV.
+    colour = (1 if mi.is_monochromatic else 3) + \
+        int(mi.has_flag(film.flags(), mi.FilmFlags.Alpha))
+    colour = min(colour, len(names))
     write_atomic(out, lambda name: bitmap.write(name))
     pixels = np.array(image)
     if pixels.ndim == 3 and pixels.shape[2] > colour:
