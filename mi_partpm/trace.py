@@ -32,6 +32,7 @@ which seed its stream, come from its index in the run on the device. The result 
 """
 from __future__ import annotations
 
+import logging
 import sys
 from typing import Callable, Optional, Sequence
 
@@ -44,6 +45,8 @@ from .memory import TRACE_BATCH
 from .photons import Photons, empty_photons, encode_direction, spectrum_channels
 from .props import segment_limit
 from .scenes import check_scene, infinite_sphere
+
+log = logging.getLogger("mi_partpm")
 
 __all__ = ["map_sizes", "map_seeds", "stream_seed", "trace_photons", "check_emitters", "emit",
            "Photons", "PATHS", "CAUSTIC_THROUGH"]
@@ -127,6 +130,20 @@ def _emitter_table(scene: mi.Scene):
     return mi.UInt32(table), envmap
 
 
+def _warn_if_scaled_envmap(emitter):
+    """A warning where an environment map's ``to_world`` is more than a rotation."""
+    if emitter.class_name() != "EnvironmentMapEmitter":
+        return
+    to_world = np.array(emitter.world_transform().matrix, dtype=np.float64)
+    to_world = to_world.reshape(4, 4)[:3, :3]
+    if np.allclose(to_world @ to_world.T, np.eye(3), atol=1e-5):
+        return
+    log.warning("environment map %s has a to_world that is not a rotation (a scale): "
+                "Mitsuba 3.9.1 then disagrees with itself (path's emitter samples grow "
+                "brighter with the scale, its BSDF samples do not); the photons carry the "
+                "unscaled map's light, so give the map a rotation only", _emitter_name(emitter))
+
+
 def _rotated_envmap(ray, envmap):
     """Mitsuba 3.9's ``envmap`` emits a photon of direction d = M (-d_l) (M its ``to_world``)
     from a point of the disc perpendicular to d_l, not to d: where M turns d_l, the rays
@@ -178,6 +195,7 @@ def check_emitters(scene: mi.Scene, samples: int = 1024):
     s = [mi.Float(np.asarray(a, np.float32)) for a in (u, *rng.random((4, samples)))]
     for emitter in scene.emitters():
         name = _emitter_name(emitter)
+        _warn_if_scaled_envmap(emitter)
         try:
             _, weight = emitter.sample_ray(0.0, s[0], mi.Point2f(s[1], s[2]),
                                            mi.Point2f(s[3], s[4]), True)

@@ -124,3 +124,17 @@ def test_an_emitter_whose_texture_cannot_be_sampled_is_named():
         cause = cause.__cause__
     assert "emitter on shape 'panel' (AreaLight) cannot emit photons" in str(cause)
     assert "give it a bitmap texture" in str(cause)
+
+
+def test_a_scaled_environment_map_is_warned_about(textures, caplog):
+    """Mitsuba 3.9.1's envmap under a scaled to_world disagrees with itself (path's emitter
+    samples brighten with the scale, its BSDF samples do not), so no photon power can match
+    both: a warning says so and names the map."""
+    scene = small_scene([0, 2, 3], [0, 0, 0], size=8,
+                        floor={"type": "rectangle", "bsdf": {"type": "diffuse"}},
+                        sky={"type": "envmap", "filename": textures["envmap"],
+                             "to_world": mi.ScalarTransform4f().scale(2.0)})
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        render(scene, mi.load_dict({"type": "partpm", "photon_count": 1000}))
+    assert "environment map 'sky' (EnvironmentMapEmitter) has a to_world that is not a " \
+           "rotation" in caplog.text

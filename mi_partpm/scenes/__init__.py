@@ -147,11 +147,13 @@ def _loader_message(text: str) -> str:
 
 def scene_bounds(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
     """The bounding box of the scene's shapes. Mitsuba 3.9 merges the meshes of shapes that
-    share a BSDF (``<ref id=.../>``) into one mesh and leaves that mesh's box, and so the
-    scene's, invalid or without it; such a mesh's box is computed here from its vertices."""
+    share a BSDF (``<ref id=.../>``, or identical inline ones) into one mesh and leaves that
+    mesh's box, and so the scene's, invalid, or holding the first shape's only (a floor
+    merged with a cube kept the cube's box); every mesh's box is computed here from its
+    vertices (a reduction over its vertex buffer, on the device)."""
     box = mi.ScalarBoundingBox3f()
     for shape in scene.shapes():
-        if not shape.bbox().valid() and isinstance(shape, mi.Mesh) and shape.vertex_count():
+        if isinstance(shape, mi.Mesh) and shape.vertex_count():
             shape.recompute_bbox()
         box.expand(shape.bbox())
     return box
@@ -201,7 +203,8 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
     what = "the scene" if name is None else f"scene {name!r}"
     # The repair itself is made every time (it is cheap), the warning once per box.
     _warn_once(("box", str(true_box)), "Mitsuba's bounding box of %s leaves out shapes (it "
-               "merged shapes with the same or identical BSDFs into a mesh without a box): "
+               "merged shapes with the same or identical BSDFs into a mesh whose box misses "
+               "some of them): "
                "photon mapping uses the box of their vertices, %s to %s%s; nothing to do",
                what, list(true_box.min), list(true_box.max),
                ", also for the emitters at infinity" if infinite else "", level=logging.INFO)
