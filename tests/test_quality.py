@@ -467,13 +467,7 @@ def test_shapes_that_share_a_bsdf_under_an_environment():
         "white": {"type": "diffuse", "id": "white"},
         "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}}})
     assert not scene.bbox().valid()                  # what Mitsuba gives
-    ref = path_reference(scene, 256, 128)
-    integrator = mi.load_dict({"type": "partpm", "photon_count": 200_000})
-    img = render(scene, integrator)
-    assert integrator.stats["radius"] == pytest.approx(0.05 * 2, rel=1e-3)
-    ratio = img.mean() / ref.mean()
-    print(f"shared BSDF under a sky: partpm / path {ratio:.3f}")
-    assert abs(ratio - 1) < 0.08, ratio
+    _sky_matches_path(scene, path_reference(scene, 256, 128), 2.0, 0.08, "shared BSDF")
 
 
 def test_shapes_with_identical_bsdfs_under_a_sky():
@@ -491,13 +485,18 @@ def test_shapes_with_identical_bsdfs_under_a_sky():
                         sky={"type": "constant"})
     assert len(scene.shapes()) == 1 and scene.bbox().valid()    # merged, with the cube's box
     assert float(scene.bbox().max[0]) < 1
-    ref = path_reference(scene, 512, 256)
+    _sky_matches_path(scene, path_reference(scene, 512, 256), 6.0, 0.05, "identical BSDFs")
+
+
+def _sky_matches_path(scene, ref, size, bound, what):
+    """partpm's default radius is 1/20 of the shapes' ``size``, and its mean within
+    ``bound`` of ``ref``'s."""
     integrator = mi.load_dict({"type": "partpm", "photon_count": 200_000})
     img = render(scene, integrator)
-    assert integrator.stats["radius"] == pytest.approx(0.05 * 6, rel=1e-3)
+    assert integrator.stats["radius"] == pytest.approx(0.05 * size, rel=1e-3)
     ratio = img.mean() / ref.mean()
-    print(f"identical BSDFs under a sky: partpm / path {ratio:.3f}")
-    assert abs(ratio - 1) < 0.05, ratio
+    print(f"{what} under a sky: partpm / path {ratio:.3f}")
+    assert abs(ratio - 1) < bound, ratio
 
 
 @pytest.mark.parametrize("caustics", [0, 50_000])
