@@ -230,6 +230,12 @@ def run_render(args) -> int:
     film = scene.sensors()[0].film()
     log.info("scene %s: %dx%d, %s%s", args.scene, film.size()[0], film.size()[1], integrator,
              " (the scene file's integrator)" if own else "")
+    if len(scene.sensors()) > 1:
+        first = scene.sensors()[0]
+        log.warning("scene %s has %d sensors: render draws the first (%s), as mi.render does "
+                    "by default; render another from Python with mi.render(scene, "
+                    "sensor=INDEX)", args.scene, len(scene.sensors()),
+                    repr(first.id()) if first.id() else first.class_name())
     seconds = {"load": clock.lap()}
     if args.checkpoint_every:
         integrator.on_pass = _checkpoints(args.checkpoint_every, out, integrator, film)

@@ -160,8 +160,13 @@ def scene_bounds(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
 
 
 def _contains(outer, inner) -> bool:
-    return outer.valid() and all(outer.min[a] <= inner.min[a] and inner.max[a] <= outer.max[a]
-                                 for a in range(3))
+    """Whether ``outer`` holds ``inner``, up to float rounding (a millionth of its size: a
+    rotated wall's vertex at -6e-17 where Mitsuba's box says 0 leaves out nothing)."""
+    if not outer.valid():
+        return False
+    slack = 1e-6 * max(float(outer.max[a] - outer.min[a]) for a in range(3))
+    return all(outer.min[a] - slack <= inner.min[a] and inner.max[a] <= outer.max[a] + slack
+               for a in range(3))
 
 
 def _true_box(scene: mi.Scene):
@@ -205,7 +210,8 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
     _warn_once(("box", str(true_box)), "Mitsuba's bounding box of %s leaves out shapes (it "
                "merged shapes with the same or identical BSDFs into a mesh whose box misses "
                "some of them): "
-               "photon mapping uses the box of their vertices, %s to %s%s; nothing to do",
+               "photon mapping uses the box of their vertices, %s to %s%s (nothing for you "
+               "to change)",
                what, list(true_box.min), list(true_box.max),
                ", also for the emitters at infinity" if infinite else "", level=logging.INFO)
     if infinite:
