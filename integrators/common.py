@@ -101,12 +101,9 @@ def _small_scene_hint(scene) -> str:
     """Where a scene is tiny (under 0.01 across), the likelier cause of photons that land
     nowhere: Mitsuba offsets rays by an epsilon that is not small against a scene 10^-4
     across (its own light tracer finds no surface there either)."""
-    from mi_partpm.scenes import scene_bounds
-    box = scene_bounds(scene)
-    if not box.valid():
-        return ""
-    longest = float(max(box.max[a] - box.min[a] for a in range(3)))
-    if longest >= 1e-2:
+    from mi_partpm.scenes import scene_size
+    longest = scene_size(scene)
+    if not 0 < longest < 1e-2:
         return ""
     return (f", or it is too small ({longest:.2g} across) for Mitsuba's ray offsets, which "
             f"then step over its surfaces (scale it up with a to_world scale)")

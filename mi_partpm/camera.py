@@ -43,9 +43,12 @@ class CameraPass:
             self.sampler.set_sample_count(spp)
         self.spp = int(self.sampler.sample_count())
         rfilter = self.film.rfilter()
-        # Filter importance sampling: the offsets' distribution (|filter|, per axis).
+        # Filter importance sampling: the offsets' distribution (|filter|, per axis), and
+        # the box filter that puts each sample into its own pixel.
         self.offsets = _filter_offsets(rfilter) if progressive and \
             not rfilter.is_box_filter() else None
+        self.pixel_filter = mi.load_dict({"type": "box"}) if self.offsets is not None \
+            else None
         film_size = np.array(self.film.crop_size(), dtype=np.int64)
         border = rfilter.border_size() if self.film.sample_border() and \
             self.offsets is None else 0
@@ -88,9 +91,8 @@ class CameraPass:
         if self.offsets is None:
             self.sample_pos = self.pixel + sampler.next_2d()
         else:
-            dist, rfilter = self.offsets
-            u = sampler.next_2d()
-            shift = mi.Vector2f(dist.sample(u.x), dist.sample(u.y))
+            u, rfilter = sampler.next_2d(), self.film.rfilter()
+            shift = mi.Vector2f(self.offsets.sample(u.x), self.offsets.sample(u.y))
             self.sample_pos = self.pixel + 0.5 + shift
             self.sign = dr.sign(rfilter.eval(shift.x)) * dr.sign(rfilter.eval(shift.y))
             if not self.film.sample_border():
@@ -136,7 +138,7 @@ class CameraPass:
         block = film.create_block()
         if self.offsets is not None:
             block = mi.ImageBlock(block.size(), film.crop_offset(), block.channel_count(),
-                                  rfilter=_box())
+                                  rfilter=self.pixel_filter)
         block.set_offset(film.crop_offset())
         block.set_coalesce(block.coalesce() and self.spp >= 4)
         if mi.is_spectral:
@@ -165,11 +167,7 @@ _RESOLUTION = 1024         # points of the tabulated filter per axis
 
 def _filter_offsets(rfilter):
     """A distribution of pixel offsets following |filter| on [-radius, radius] (one axis; the
-    filters are separable), and the filter for the signs."""
+    filters are separable)."""
     r = float(rfilter.radius())
     x = dr.linspace(mi.Float, -r, r, _RESOLUTION)
-    return mi.ContinuousDistribution(mi.ScalarVector2f(-r, r), dr.abs(rfilter.eval(x))), rfilter
-
-
-def _box():
-    return mi.load_dict({"type": "box"})
+    return mi.ContinuousDistribution(mi.ScalarVector2f(-r, r), dr.abs(rfilter.eval(x)))

@@ -172,13 +172,12 @@ def fixed_radius(scene: mi.Scene, radius, radius_fraction: float,
     the fraction prop), name them in the message that refuses a radius below the least. A
     scene without a shape stores no photon, and any radius renders it the same: there the
     fraction itself is returned."""
-    from .scenes import scene_bounds
+    from .scenes import scene_size
     if radius is not None:
         return float(radius)
     if not scene.shapes():        # no photon is ever stored: any radius renders the same
         return float(radius_fraction)
-    extent = scene_bounds(scene).extents()
-    longest = float(dr.max(mi.ScalarVector3f(extent)))
+    longest = scene_size(scene)
     if not longest > 0:
         raise ValueError("the scene's bounding box is empty: give radius explicitly")
     if radius_fraction * longest < MIN_RADIUS:

@@ -120,9 +120,8 @@ def _emitter_table(scene: mi.Scene):
     envmap = None
     for emitter, i in zip(scene.emitters(), ids):
         table[i] = emitter.class_name() in SCALED_BY_DIRECTION_LENGTH
-        if emitter.class_name() == "EnvironmentMapEmitter":
-            to_world = np.array(emitter.world_transform().matrix, dtype=np.float64)
-            to_world = to_world.reshape(4, 4)[:3, :3]
+        to_world = _envmap_turn(emitter)
+        if to_world is not None:
             if not np.allclose(to_world, np.eye(3), atol=1e-7):
                 table[i] = 2
                 centre, radius = infinite_sphere(scene)
@@ -130,13 +129,18 @@ def _emitter_table(scene: mi.Scene):
     return mi.UInt32(table), envmap
 
 
+def _envmap_turn(emitter):
+    """An environment map's ``to_world`` without its translation (3 x 3, float64); None for
+    any other emitter."""
+    if emitter.class_name() != "EnvironmentMapEmitter":
+        return None
+    return np.array(emitter.world_transform().matrix, dtype=np.float64).reshape(4, 4)[:3, :3]
+
+
 def _warn_if_scaled_envmap(emitter):
     """A warning where an environment map's ``to_world`` is more than a rotation."""
-    if emitter.class_name() != "EnvironmentMapEmitter":
-        return
-    to_world = np.array(emitter.world_transform().matrix, dtype=np.float64)
-    to_world = to_world.reshape(4, 4)[:3, :3]
-    if np.allclose(to_world @ to_world.T, np.eye(3), atol=1e-5):
+    to_world = _envmap_turn(emitter)
+    if to_world is None or np.allclose(to_world @ to_world.T, np.eye(3), atol=1e-5):
         return
     log.warning("environment map %s has a to_world that is not a rotation (a scale): "
                 "Mitsuba 3.9.1 then disagrees with itself (path's emitter samples grow "

@@ -390,12 +390,10 @@ def _write_image(out: Path, image, film):
     import mitsuba as mi
     import numpy as np
     bitmap = film.bitmap()          # what ``image`` was developed from, with channel names
-    names = [field.name for field in bitmap.struct_()]
+    write_atomic(out, lambda name: bitmap.write(name))
     # The colour (R, G, B or Y) and the alpha the film has, before any AOV.
     colour = (1 if mi.is_monochromatic else 3) + \
         int(mi.has_flag(film.flags(), mi.FilmFlags.Alpha))
-    colour = min(colour, len(names))
-    write_atomic(out, lambda name: bitmap.write(name))
     pixels = np.array(image)
     if pixels.ndim == 3 and pixels.shape[2] > colour:
         pixels = pixels[..., :colour]

@@ -31,7 +31,7 @@ from ..props import check_int
 log = logging.getLogger("mi_partpm")
 
 __all__ = ["scene_names", "scene_path", "load_scene", "check_scene", "check_sensor",
-           "scene_bounds", "infinite_sphere"]
+           "scene_bounds", "scene_size", "infinite_sphere"]
 
 _HERE = Path(__file__).resolve().parent
 
@@ -159,6 +159,12 @@ def scene_bounds(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
     return box
 
 
+def scene_size(scene: mi.Scene) -> float:
+    """The longest side of :func:`scene_bounds` (0 for a scene without a shape's box)."""
+    box = scene_bounds(scene)
+    return float(max(box.max[a] - box.min[a] for a in range(3))) if box.valid() else 0.0
+
+
 def _contains(outer, inner) -> bool:
     """Whether ``outer`` holds ``inner``, up to float rounding (a millionth of its size: a
     rotated wall's vertex at -6e-17 where Mitsuba's box says 0 leaves out nothing)."""
@@ -264,9 +270,7 @@ def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool 
     what = "the scene" if name is None else f"scene {name!r}"
     _repair_infinite_emitters(scene, name)
     if scene.shapes():
-        box = scene_bounds(scene)
-        longest = float(max(box.max[a] - box.min[a] for a in range(3))) if box.valid() else 0.0
-        check_span(longest, f"{what} is {{}} across (the longest side of its shapes' bounding "
+        check_span(scene_size(scene), f"{what} is {{}} across (the longest side of its shapes' bounding "
                    f"box)", "scale the scene up (a to_world scale)")
     if not scene.emitters():
         raise ValueError(f"{what} has no emitter: nothing would be lit (photon mapping needs "
