@@ -241,6 +241,17 @@ class HardwareConfig:
     pe: PEConfig = field(default_factory=PEConfig)
 
     def __post_init__(self):
+        # The four tables: their config objects, or dicts of their fields (as with_() takes).
+        for name, cls in (("memory", MemoryConfig), ("gather", GatherConfig),
+                          ("energy", EnergyConfig), ("pe", PEConfig)):
+            value = getattr(self, name)
+            if isinstance(value, dict):
+                value = _pe_from_dict(value, None) if cls is PEConfig and \
+                    set(value) <= set(PE_KEYS) else cls(**_from_dict(cls, value, name))
+                object.__setattr__(self, name, value)
+            elif not isinstance(value, cls):
+                raise ValueError(f"{name} must be a dict of its fields or {cls.__name__}(...), "
+                                 f"got {value!r:.60}")
         _check_number("", "pe_count", self.pe_count, 1, low_open=False, integer=True)
         _check_number("", "clock_hz", self.clock_hz)
         for name in CYCLE_KEYS:

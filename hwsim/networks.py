@@ -6,7 +6,8 @@ returning how many times a vector crosses a link (for the energy). :data:`NETWOR
 them; the configuration's ``gather.topology``, the reports' sweep and the energy model all read
 it, so a new network is a new entry here (and its test).
 
-- **bus**: one shared link, every PE's vector in turn: ``P * V/link + hop + adder``.
+- **bus**: one shared link, every PE's vector but the root's in turn: ``(P - 1) * V/link +
+  hop + adder``.
 - **tree**: a binary adder tree of ``L = ceil(log2 P)`` levels; store-and-forward
   ``L * (V/link + hop + adder)``, pipelined ``V/link + L * (hop + adder)``.
 - **ring**: ``P - 1`` steps around a ring; store-and-forward ``(P - 1) * (V/link + hop +
@@ -22,7 +23,7 @@ __all__ = ["Network", "NETWORKS", "TOPOLOGIES", "SWEEP", "gather_cycles", "gathe
 
 
 def _bus(pes: int, transfer: float, step: float, pipelined: bool) -> float:
-    return pes * transfer + step
+    return (pes - 1) * transfer + step      # the root's own vector stays on the root
 
 
 def _levels(hops: int, transfer: float, step: float, pipelined: bool) -> float:

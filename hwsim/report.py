@@ -24,7 +24,7 @@ import numpy as np
 from .config import CYCLE_KEYS, HardwareConfig
 from .model import simulate
 from .networks import SWEEP
-from .workload import load_workloads
+from .workload import folder_hint, load_workloads
 
 __all__ = ["run_report", "format_report", "sensitivity", "ASSUMED"]
 
@@ -159,7 +159,7 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
         # Before any simulation, and before the output folder is made.
         raise ValueError(f"check: {check_dir} holds neither sets.json (calibration sets "
                          f"written by 'partpm calibrate') nor meta.json (a workloads "
-                         f"directory)")
+                         f"directory){folder_hint(check_dir)}")
     say(f"{meta.get('scene', workload_dir)}: n = {', '.join(map(str, sorted(loads)))}, "
         f"{meta['queries']} queries per map")
     out = Path(out_dir)
@@ -298,13 +298,13 @@ def _plots(rows, sweep, contention, detail, out, scene):
     import matplotlib.pyplot as plt
     n = [r["n"] for r in rows]
     fig, ax = plt.subplots(1, 4, figsize=(18, 4))
-    ax[0].plot(n, n, "k--", label="ideal")
+    ax[0].plot(n, [m / n[0] for m in n], "k--", label="ideal")
     ax[0].plot(n, [r["speedup_without_gather"] for r in rows], "s:", label="without gather")
     ax[0].plot(n, [r["speedup"] for r in rows], "o-", label="with gather")
     ax[0].set_xscale("log", base=2)
     ax[0].set_yscale("log", base=2)
     ax[0].set_xlabel("maps n = PEs")
-    ax[0].set_ylabel("frame speedup vs n = 1")
+    ax[0].set_ylabel(f"frame speedup vs n = {n[0]}")
     ax[0].legend(fontsize=8)
     ax[0].set_title(f"{scene}: simulated speedup", fontsize=10)
     ax[1].bar(range(detail.pe_count), detail.utilisation)
@@ -363,7 +363,9 @@ def _mb(nbytes) -> float:
 
 
 def _format_rows(rows) -> list:
-    lines = [f"{'n=PEs':>5} {'frame ms':>9} {'fps':>8} {'speedup':>8} {'w/o gather':>10} "
+    lines = [] if rows[0]["n"] == 1 else [
+        f"speedups against n = {rows[0]['n']}, the smallest n recorded (no run of one map)"]
+    lines += [f"{'n=PEs':>5} {'frame ms':>9} {'fps':>8} {'speedup':>8} {'w/o gather':>10} "
              f"{'gather %':>8} {'imbalance':>9} {'util':>5} {'DRAM MB':>8} {'nodes x':>7} "
              f"{'mJ':>8} {'nJ/query':>8}"]
     for r in rows:
@@ -455,8 +457,11 @@ def _format_sensitivity(sens, n, first_n) -> str:
     energy = [r["energy_ratio"] for r in sens]
     dram = [_mb(r["dram_bytes"]) for r in sens]
     worst = min(sens, key=lambda r: r["speedup"])
-    return (f"sensitivity (each assumed constant x0.5 and x2): speedup at n = {n} "
-            f"{min(speeds):.2f}-{max(speeds):.2f} (as configured "
+    if n == first_n:
+        return (f"sensitivity: one n recorded (n = {n}), so no speedup to vary; record "
+                f"several (partpm speedup SCENE --maps 1,2,4,...)")
+    return (f"sensitivity (each assumed constant x0.5 and x2): speedup at n = {n} over "
+            f"n = {first_n} {min(speeds):.2f}-{max(speeds):.2f} (as configured "
             f"{sens[0]['speedup']:.2f}; lowest with {worst['constant']} "
             f"x{worst['factor']:g}), gather share {min(shares) * 100:.2f}-"
             f"{max(shares) * 100:.2f}%, energy per frame at n = {n} over n = {first_n} "

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MapWorkloads", "WorkloadSet", "load_workloads", "save_workloads",
+__all__ = ["MapWorkloads", "WorkloadSet", "load_workloads", "save_workloads", "folder_hint",
            "load_workload_sets", "save_workload_sets", "set_name", "FORMAT_VERSION",
            "READS_VERSIONS", "SETS_FILE"]
 
@@ -72,6 +72,24 @@ class MapWorkloads:
         return self._tile_counts[tile_queries]
 
 
+def _read_json(path: Path):
+    """The JSON document in ``path``; a ValueError naming the file when it is not JSON."""
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not valid JSON ({e}): write it again with the command "
+                         f"that made it") from None
+
+
+def folder_hint(d: Path) -> str:
+    """Where inside ``d`` the workloads or sets are, for a message about ``d`` (a speedup
+    run's or calibration's --out folder given for the folder inside it), or ''."""
+    for inner, index in (("workloads", "meta.json"), ("sets", SETS_FILE)):
+        if (d / inner / index).is_file():
+            return f" (it has one inside: {d / inner})"
+    return ""
+
+
 def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
     """``(meta, {n: MapWorkloads})`` from a ``workloads/`` directory.
 
@@ -80,11 +98,10 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
     d = Path(directory)
     meta_path = d / "meta.json"
     if not meta_path.is_file():
-        hint = f" (it has one: {d / 'workloads'})" if (d / "workloads" / "meta.json").is_file() \
-            else ""
         raise ValueError(f"{meta_path} is missing: is {d} a workloads directory written by "
-                         f"'partpm speedup'? It is the speedup run's workloads/ folder{hint}")
-    meta = json.loads(meta_path.read_text())
+                         f"'partpm speedup'? It is the speedup run's workloads/ folder"
+                         f"{folder_hint(d)}")
+    meta = _read_json(meta_path)
     if meta.get("version") not in READS_VERSIONS:
         raise ValueError(f"{meta_path}: format version {meta.get('version')!r}, this hwsim "
                          f"reads versions {', '.join(map(str, READS_VERSIONS))}")
@@ -268,8 +285,9 @@ def load_workload_sets(directory) -> tuple[dict, list[WorkloadSet]]:
             return ({"scene": meta.get("scene", str(d)), "settings": {}, "sets": []},
                     [WorkloadSet(d.name or "workloads", meta, loads)])
         raise ValueError(f"{d} holds neither {SETS_FILE} (calibration sets written by "
-                         f"'partpm calibrate') nor meta.json (a workloads directory)")
-    index = json.loads(index_path.read_text())
+                         f"'partpm calibrate') nor meta.json (a workloads directory)"
+                         f"{folder_hint(d)}")
+    index = _read_json(index_path)
     if index.get("version") not in READS_VERSIONS:
         raise ValueError(f"{index_path}: format version {index.get('version')!r}, this hwsim "
                          f"reads versions {', '.join(map(str, READS_VERSIONS))}")

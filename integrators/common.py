@@ -38,6 +38,7 @@ from mi_partpm.backends import LocalBackend
 from mi_partpm.camera import CameraPass
 from mi_partpm.estimate import note_bent_bsdfs
 from mi_partpm.eyepath import eye_paths
+from mi_partpm.logs import follow_mitsuba_level
 from mi_partpm.photonmap import build_photon_maps
 from mi_partpm.props import UNLIMITED_DEPTH, read_bool, read_photon_map_params
 from mi_partpm.timing import Stopwatch
@@ -338,6 +339,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         self._not_differentiable()
 
     def _render(self, scene, sensor, seed, spp, develop, evaluate):
+        follow_mitsuba_level()
         if not develop and self.backend.name != "local":
             raise ValueError(f"develop=False is not supported with backend={self.backend.name!r}"
                              f": render with develop=True")
@@ -437,8 +439,11 @@ class PhotonMapper(mi.SamplingIntegrator):
         for wave_index, wave in enumerate(waves):
             self.wave_index = wave_index
             if len(waves) > 1:
-                log.info("wave %d of %d: maps %d-%d of %d", wave_index + 1, len(waves),
-                         wave[0], wave[-1], self.map_count)
+                maps = f"map {wave[0]}" if len(wave) == 1 else \
+                    f"maps {wave[0]}-{wave[-1]}" if wave[-1] - wave[0] == len(wave) - 1 else \
+                    f"{len(wave)} maps of {wave[0]}-{wave[-1]}"     # a rank's: every P-th
+                log.info("wave %d of %d: %s of %d", wave_index + 1, len(waves), maps,
+                         self.map_count)
             for layer in self._layers:
                 self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave)
             if pass_index == 0 and wave_index == 0:
@@ -487,6 +492,10 @@ class PhotonMapper(mi.SamplingIntegrator):
 
     def _finish(self, terms):
         self.after_estimate()
+        # The last wave's maps are of no use after the render: an integrator kept in a
+        # notebook held them (about 150 MB per 10^6 photons emitted) until its next render.
+        for layer in self._layers:
+            layer.maps = None
         # The radii a next pass would search with (a render of one pass searched with the
         # fixed radius alone, and its stats say so: no final radius).
         for term in terms:
@@ -554,6 +563,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                              f"must be the scene's top-level integrator (its ranks gather "
                              f"whole images); use backend='local' inside moment or aov")
         _wait_for_background_tasks()
+        follow_mitsuba_level()
         check_emitters(scene)
         note_bent_bsdfs(scene)
         width = dr.width(ray.o)

@@ -99,6 +99,10 @@ def abort_job(comm, message, code: int = 1):
         pass
     # A rank that left the message to rank 0 waits longer, so that rank 0, which fails alike
     # at about the same time, says it before the job ends.
+    if comm.size == 1:         # no rank to stop: MPI_Abort of a lone rank ran the C++ exit
+        sys.stdout.flush()     # handlers under Dr.Jit's live threads (terminate, exit 6)
+        sys.stderr.flush()
+        os._exit(code)
     time.sleep(SILENT_RANK_WAIT if _SILENCED else 1.0)
     comm.Abort(code)
     os._exit(code)
@@ -163,15 +167,21 @@ def _exit_code(e: BaseException, default: int) -> int:
 
 
 @contextmanager
-def abort_on_error(comm):
+def abort_on_error(comm, describe=None):
     """Turn an exception on one rank into an abort of the whole job with that rank's message.
 
     Without it the other ranks would wait in the reduction forever: so also for
-    ``SystemExit`` (``sys.exit`` in a callback) and ``KeyboardInterrupt``.
+    ``SystemExit`` (``sys.exit`` in a callback) and ``KeyboardInterrupt``. ``describe``, when
+    given, turns a bad-input error (``ValueError``, ``RuntimeError``, ``MemoryError``) into
+    the message to print, and the job exits with 2, as the command line does for bad input
+    (it names its options where the integrator names its props).
     """
     try:
         yield
     except (Exception, SystemExit, KeyboardInterrupt) as e:   # noqa: BLE001
+        if describe is not None and isinstance(e, (ValueError, RuntimeError, MemoryError)) \
+                and not interrupted(e):
+            abort_job(comm, describe(e), 2)
         abort_job(comm, _message(e), _exit_code(e, 1))
 
 
@@ -290,8 +300,12 @@ class MPIBackend(Backend):
     def owned_maps(self, map_count: int) -> np.ndarray:
         return owned_maps(self.comm.rank, self.comm.size, map_count)
 
+    #: Set by the command line: how a bad-input error of the render reads to its user
+    #: (:func:`abort_on_error`); None: the exception's type and text.
+    describe = None
+
     def running(self):
-        return abort_on_error(self.comm)
+        return abort_on_error(self.comm, self.describe)
 
     def allreduce(self, values, stats: dict):
         t0 = time.perf_counter()

@@ -118,11 +118,20 @@ class MemoryEstimate:
         return self.photon_maps + self.eye
 
     def describe(self) -> str:
-        gb = 1e9
         waves = "" if self.waves == 1 else f" in the largest of {self.waves} waves"
-        return (f"{self.total / gb:.2f} GB (photon maps {self.photon_maps / gb:.2f} GB for "
+        return (f"{size_text(self.total)} (photon maps {size_text(self.photon_maps)} for "
                 f"about {self.stored:.3g} stored photons{waves}, eye pass "
-                f"{self.eye / gb:.2f} GB)")
+                f"{size_text(self.eye)})")
+
+
+def size_text(nbytes: float) -> str:
+    """``nbytes`` for a message: in GB with two decimals from 0.1 GB, in MB or kB below, so
+    that a small amount does not read 0.00 GB."""
+    if nbytes >= 1e8:
+        return f"{nbytes / 1e9:.2f} GB"
+    if nbytes >= 1e5:
+        return f"{nbytes / 1e6:.1f} MB"
+    return f"{nbytes / 1e3:.1f} kB"
 
 
 def stored_photons(photon_count: float, max_depth: int,
@@ -171,15 +180,15 @@ def check_fits(estimate: MemoryEstimate, what: str = "this render"):
         share = max(free * 0.9 / max(estimate.eye, 1), 0.0)
         raise MemoryGuardError(
             f"the eye pass (the camera's samples) alone needs about "
-            f"{estimate.eye / 1e9:.2f} GB, but only {free / 1e9:.2f} GB are free: lower the "
+            f"{size_text(estimate.eye)}, but only {size_text(free)} are free: lower the "
             f"resolution or spp (to about {share:.2g} of the samples per image here); fewer "
-            f"photons would not help (their maps take {estimate.photon_maps / 1e9:.2f} GB)")
+            f"photons would not help (their maps take {size_text(estimate.photon_maps)})")
     fraction = (free - estimate.eye) / max(estimate.photon_maps, 1)
     raise MemoryGuardError(
-        f"{what} needs about {estimate.describe()}, but only {free / 1e9:.2f} GB are free: "
+        f"{what} needs about {estimate.describe()}, but only {size_text(free)} are free: "
         f"lower photon_count (to about {int(estimate.photons * fraction * 0.9):,} per wave "
         f"here), raise map_count (smaller maps make smaller waves), or lower max_depth, or "
-        f"the resolution / spp (the eye pass takes {estimate.eye / 1e9:.2f} GB)")
+        f"the resolution / spp (the eye pass takes {size_text(estimate.eye)})")
 
 
 def wave_budget(eye: int, limit: Optional[int] = None) -> Optional[int]:

@@ -14,7 +14,7 @@ import pytest
 
 from hwsim.config import HardwareConfig, load_config
 from hwsim.model import simulate
-from hwsim.networks import gather_cycles
+from hwsim.networks import gather_cycles, gather_traffic
 from hwsim.work import sram_resident
 from hwsim.workload import MapWorkloads
 
@@ -50,11 +50,12 @@ def test_two_pes_with_imbalance_and_a_bus_gather():
     cfg = BASE.with_(pe_count=2, gather={"topology": "bus", "link_bytes_per_cycle": 4,
                                          "hop_latency_cycles": 1, "adder_latency_cycles": 2})
     r = simulate(cfg, workload([[10], [5]], [[0], [0]], [[0], [0]]))
-    # Bus: 2 PEs x 1 result x 12 bytes / 4 bytes per cycle = 6, + hop 1 + adder 2 = 9.
-    assert r.compute_cycles == 40 and r.gather_cycles == 9 and r.frame_cycles == 49
-    assert r.pe_idle.tolist() == [9, 29]
+    # Bus: the PE that is not the root sends 1 result x 12 bytes / 4 bytes per cycle = 3,
+    # + hop 1 + adder 2 = 6 (the root's own vector does not cross the bus).
+    assert r.compute_cycles == 40 and r.gather_cycles == 6 and r.frame_cycles == 46
+    assert r.pe_idle.tolist() == [6, 26]
     assert r.load_imbalance == pytest.approx(40 / 30)
-    assert r.gather_share == pytest.approx(9 / 49)
+    assert r.gather_share == pytest.approx(6 / 46)
 
 
 def test_tree_gather_store_and_forward_vs_pipelined():
@@ -64,9 +65,17 @@ def test_tree_gather_store_and_forward_vs_pipelined():
     assert gather_cycles(cfg, 8, 100) == 100 + 3 * 5
     cfg = cfg.with_(gather={"pipelined": False})
     assert gather_cycles(cfg, 8, 100) == 3 * (100 + 5)
-    assert gather_cycles(cfg.with_(gather={"topology": "bus"}), 8, 100) == 8 * 100 + 5
+    assert gather_cycles(cfg.with_(gather={"topology": "bus"}), 8, 100) == 7 * 100 + 5
     assert gather_cycles(cfg.with_(gather={"topology": "ring"}), 8, 100) == 7 * (100 + 5)
     assert gather_cycles(cfg, 1, 100) == 0
+    # Two PEs: every network is the one link from the other PE to the root, and moves the
+    # vector once (the bus took two vectors' time for one vector's traffic before).
+    for pipelined in (True, False):
+        two = {t: gather_cycles(cfg.with_(gather={"topology": t, "pipelined": pipelined}),
+                                2, 100) for t in ("bus", "tree", "ring")}
+        assert set(two.values()) == {100 + 5}, two
+        assert {gather_traffic(cfg.with_(gather={"topology": t}), 2, 100)
+                for t in two} == {(100 * 12, 100)}
 
 
 def test_a_map_that_spills_to_dram_stalls():
@@ -100,7 +109,8 @@ def test_two_maps_that_fit_alone_but_not_together_share_one_pe():
     One PE, tile-major: 20 + 128 + 9 + 192 = 349 cycles = busy 91 + stall 258; DRAM 128 +
     192 = 320 bytes (per tile: the whole map's 232 bytes would be 4 bursts, 256).
     Two PEs: each map alone fits its PE's SRAM; compute max(29, 62) = 62, plus the bus
-    gather of 2 PEs x 2 results x 12 bytes / 12 bytes per cycle = 4: 66 cycles, no DRAM.
+    gather of 1 PE (the other is the root) x 2 results x 12 bytes / 12 bytes per cycle = 2:
+    64 cycles, no DRAM.
     """
     cfg = BASE.with_(tile_queries=1, outstanding_queries=2,
                      memory={"sram_bytes": 1000, "dram_bytes_per_cycle": 1,
@@ -115,7 +125,7 @@ def test_two_maps_that_fit_alone_but_not_together_share_one_pe():
         assert one.dram_bytes.tolist() == [320] and one.sram_bytes.tolist() == [700], model
         assert one.energy["dram"] == pytest.approx(320 * 160e-12), model
     two = simulate(cfg.with_(pe_count=2), w)
-    assert two.compute_cycles == 62 and two.gather_cycles == 4 and two.frame_cycles == 66
+    assert two.compute_cycles == 62 and two.gather_cycles == 2 and two.frame_cycles == 64
     assert two.pe_stall.tolist() == [0, 0] and two.dram_bytes.tolist() == [0, 0]
     assert two.sram_bytes.tolist() == [700, 600] and two.energy["dram"] == 0
 
@@ -140,8 +150,9 @@ def test_tiled_gather_overlaps_the_compute():
                              "hop_latency_cycles": 0, "adder_latency_cycles": 0})
     w = workload([[10, 10], [10, 10]], [[0, 0]] * 2, [[0, 0]] * 2)
     r = simulate(cfg, w)
-    # Compute 80 per PE; gather of 2 results from 2 PEs: 4 cycles; one tile: 2 cycles.
-    assert r.frame_cycles == 80 + 2 and r.exposed_gather_cycles == 2
+    # Compute 80 per PE; gather of 2 results from the PE that is not the root: 2 cycles;
+    # one tile: 1 cycle.
+    assert r.frame_cycles == 80 + 1 and r.exposed_gather_cycles == 1
 
 
 def test_more_pes_shorten_the_frame_while_the_gather_grows_less_than_the_compute_shrinks():
@@ -202,13 +213,13 @@ def test_two_pes_sharing_one_dram_channel_by_hand():
                      gather={"topology": "bus", "link_bytes_per_cycle": 12,
                              "hop_latency_cycles": 0, "adder_latency_cycles": 0})
     # Each map: 1 query of (2 nodes, 4 tested, 1 found), 1000 bytes, so in DRAM: compute 22,
-    # 128 bytes = 128 cycles of transfer, latency 10. Gather on the bus: 2 x 12 / 12 = 2.
+    # 128 bytes = 128 cycles of transfer, latency 10. Gather on the bus: 1 x 12 / 12 = 1.
     w = workload([[2], [2]], [[4], [4]], [[1], [1]], map_bytes=[1000, 1000])
     private = simulate(cfg, w)
-    assert private.model == "analytic" and private.frame_cycles == 128 + 2
+    assert private.model == "analytic" and private.frame_cycles == 128 + 1
     # One channel: PE 0 is served in [0, 128], PE 1 queues and is served in [128, 256].
     shared = simulate(cfg.with_(memory={"dram_channels": 1}), w)
-    assert shared.model == "events" and shared.frame_cycles == 256 + 2
+    assert shared.model == "events" and shared.frame_cycles == 256 + 1
     assert shared.pe_stall.tolist() == [128 - 22, 256 - 22]
     assert shared.dram_channel_busy.tolist() == [256]
     with pytest.raises(ValueError, match="analytic model has no DRAM contention"):
@@ -264,6 +275,21 @@ def test_energy_by_hand():
 def test_invalid_configs_name_the_field(changes, message):
     with pytest.raises(ValueError, match=message):
         load_config(**changes)
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"memory": 5}, r"memory must be a dict of its fields or MemoryConfig\(...\), got 5"),
+    ({"gather": "tree"}, r"gather must be a dict of its fields or GatherConfig"),
+    ({"energy": None}, r"energy must be a dict of its fields or EnergyConfig"),
+    ({"memory": {"sram": 1}}, r"unknown key in memory: sram"),
+    ({"pe": {"costs": "fitted"}}, r'pe.costs = "fitted" needs pe.fitted_costs')])
+def test_hardware_config_checks_its_tables_from_python(changes, message):
+    """HardwareConfig from Python takes each table as its config object or a dict of its
+    fields; anything else is named (a number was taken, and the simulation failed later
+    with an AttributeError)."""
+    with pytest.raises(ValueError, match=message):
+        HardwareConfig(**changes)
+    assert HardwareConfig(memory={"dram_channels": 1}).memory.dram_channels == 1
 
 
 def test_config_from_toml(tmp_path):
@@ -824,7 +850,11 @@ def test_hwsim_cli_points_at_the_workloads_folder_and_refuses_a_file_as_out(tmp_
     from mi_partpm.cli import main
     _synthetic_dir(tmp_path)                       # tmp_path/workloads: the speedup run's
     assert main(["hwsim", str(tmp_path), "--out", str(tmp_path / "a")]) == 2
-    assert f"(it has one: {tmp_path / 'workloads'})" in capsys.readouterr().err
+    assert f"(it has one inside: {tmp_path / 'workloads'})" in capsys.readouterr().err
+    # --check given a speedup run's (or a calibration's) --out folder says where inside.
+    assert main(["hwsim", str(tmp_path / "workloads"), "--check", str(tmp_path), "--out",
+                 str(tmp_path / "c")]) == 2
+    assert f"(it has one inside: {tmp_path / 'workloads'})" in capsys.readouterr().err
     taken = tmp_path / "taken"
     taken.write_text("")
     assert main(["hwsim", str(tmp_path / "workloads"), "--out", str(taken)]) == 2
@@ -842,6 +872,42 @@ def test_hwsim_cli_names_a_workload_file_that_is_not_one(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"{victim} is not a workload file (a NumPy .npz of arrays written by" in err
     assert "Traceback" not in err and "allow_pickle" not in err
+
+
+def test_hwsim_cli_names_a_meta_json_that_is_not_json(tmp_path, capsys):
+    from mi_partpm.cli import main
+    workloads = _synthetic_dir(tmp_path)
+    (workloads / "meta.json").write_text("{\n  'version': 1\n}")
+    assert main(["hwsim", str(workloads), "--out", str(tmp_path / "a")]) == 2
+    assert f"{workloads / 'meta.json'} is not valid JSON (" in capsys.readouterr().err
+
+
+def test_python_m_hwsim_runs_the_report_without_mitsuba(tmp_path):
+    """The report from 'python -m hwsim', which an architect's machine without Mitsuba or
+    Dr.Jit can run ('partpm hwsim' loads both, as the partpm package registers its plugins):
+    the same report.json tables as 'partpm hwsim', and neither module imported."""
+    import subprocess
+    import sys
+    from mi_partpm.cli import main
+    workloads = _synthetic_dir(tmp_path)
+    probe = ("import runpy, sys; sys.argv = ['hwsim', *sys.argv[1:]]\n"
+             "try:\n    runpy.run_module('hwsim', run_name='__main__')\n"
+             "except SystemExit as e:\n"
+             "    print('imported:', sorted(m for m in ('mitsuba', 'drjit', 'mi_partpm') "
+             "if m in sys.modules)); sys.exit(e.code)\n")
+    done = subprocess.run([sys.executable, "-c", probe, str(workloads), "--out",
+                           str(tmp_path / "alone"), "-q"], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "imported: []" in done.stdout
+    assert main(["hwsim", str(workloads), "--out", str(tmp_path / "partpm"), "-q"]) == 0
+    alone = json.loads((tmp_path / "alone" / "report.json").read_text())
+    with_partpm = json.loads((tmp_path / "partpm" / "report.json").read_text())
+    assert alone["rows"] == with_partpm["rows"] and alone["sweep"] == with_partpm["sweep"]
+    bad = subprocess.run([sys.executable, "-m", "hwsim", str(tmp_path / "nowhere"), "--out",
+                          str(tmp_path / "x")], capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and bad.stderr.startswith("hwsim: error: ") and \
+        "meta.json is missing" in bad.stderr
 
 
 def test_integer_keys_given_as_whole_floats_are_integers(tmp_path):

@@ -84,7 +84,7 @@ def test_memory_guard_stops_an_oversize_request_before_tracing(monkeypatch, caps
     err = capsys.readouterr().err
     print(err.strip().splitlines()[-1])
     assert "--photons 2000000 needs about" in err
-    assert "only 0.05 GB are free: lower --photons" in err
+    assert "only 50.0 MB are free: lower --photons" in err
     assert "raise --maps" in err
     assert "trace: emitting" not in err                   # stopped before any tracing
 

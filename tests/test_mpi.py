@@ -134,6 +134,22 @@ def test_a_failing_rank_aborts_the_job_with_its_message(how, said):
     assert "finished" not in done.stdout
 
 
+@pytest.mark.parametrize("ranks", [1, 2])
+def test_bad_input_found_during_an_mpi_render_reads_as_the_command_lines(tmp_path, ranks):
+    """The memory guard refuses the photons on every rank: the job ends with exit 2 and the
+    message the local command gives, naming --photons (it named the prop photon_count with
+    the exception's class before, and exit 1); a job of one rank ends as cleanly (its
+    MPI_Abort ran C++ exit handlers under Dr.Jit's threads: 'terminate called', exit 6)."""
+    env = {**__import__("os").environ, "PARTPM_MEMORY_LIMIT": "3000000"}
+    cmd = [find_mpiexec(), "-n", str(ranks), *CLI, "--maps", "4", "--photons", "100000",
+           "--resolution", "16x16", "-o", str(tmp_path / "x.exr")]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert f"error on MPI rank 0 of {ranks}: --photons 100000 needs about" in done.stderr
+    assert "MemoryGuardError" not in done.stderr and "photon_count" not in done.stderr
+    assert "terminate called" not in done.stderr
+
+
 def test_a_stop_asked_on_any_rank_stops_every_rank_after_the_same_pass():
     """A stop asked on rank 1 alone (a Ctrl-C sent to it) stops the job after that pass;
     only rank 0's was heard before, so the job said it would stop and ran all its passes."""
@@ -290,6 +306,13 @@ def test_scaling_command_small(tmp_path, capsys):
     assert main(["scaling", "cornell_box", "--ranks", "1,3", "--maps", "2",
                  "--out", str(tmp_path)]) == 2
     assert "every P in --ranks must be in [1, maps = 2], got 3" in capsys.readouterr().err
+    # The speedups are against one rank: a list without 1 gave them against its first P
+    # under the heading of P = 1, and a P given twice was rendered twice.
+    for ranks, said in [("2,4", "--ranks must include 1"), ("1,2,2", "--ranks lists 2 more "
+                                                                      "than once")]:
+        assert main(["scaling", "cornell_box", "--ranks", ranks, "--maps", "4",
+                     "--out", str(tmp_path)]) == 2
+        assert said in capsys.readouterr().err
 
 
 def test_render_prediction_from_one_rank_by_hand():

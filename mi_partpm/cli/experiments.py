@@ -59,34 +59,13 @@ def run_bench(args) -> int:
     return 0
 
 
-def _toml(path) -> dict:
-    import tomllib
-    with open(path, "rb") as f:
-        return tomllib.load(f)
-
-
 def run_hwsim(args) -> int:
-    from hwsim.config import load_config
-    from hwsim.report import format_report, run_report
+    from hwsim.cli import run
     from ..experiments.provenance import code_version
-    if args.config and not Path(args.config).is_file():
-        raise UsageError(f"--config {args.config!r} is not a file")
     try:
-        config = load_config(args.config)
-        if args.config and "pe_count" in _toml(args.config):
-            raise ValueError(f"pe_count in {args.config}: the report sets the PE count "
-                             f"itself (one PE per map at every recorded n, and P = 1, 2, 4, "
-                             f"... n at the largest n); remove the key (it is simulate()'s, "
-                             f"in Python)")
-        result = run_report(args.workloads, config, args.out, args.check,
-                            progress=progress(args), code=code_version())
+        return run(args, code=code_version())
     except (OSError, ValueError) as e:
         raise UsageError(str(e)) from None
-    if not args.quiet:
-        print(format_report(result))
-        print(f"wrote    {args.out}/report.json, report.csv, sweep.csv, contention.csv, "
-              f"sensitivity.csv, hwsim.png")
-    return 0
 
 
 def run_speedup(args) -> int:

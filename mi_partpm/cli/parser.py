@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from hwsim.cli import add_arguments as hwsim_arguments
+
 from ..kdtree.knn import MAX_K
 from .common import parse_resolution, positive_float, positive_int, radius_float, seed_int
 
@@ -52,7 +54,7 @@ def _scene_options(p, compare: bool = False):
                         "(default: $PARTPM_DATA, else the package's copy)")
     p.add_argument("--variant", default="llvm_ad_rgb",
                    help="Mitsuba variant (default llvm_ad_rgb)")
-    p.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    p.add_argument("-q", "--quiet", action="store_true", help="print only warnings and errors")
 
 
 def _size_options(p, spp, repeats, repeats_help):
@@ -191,7 +193,7 @@ def _experiment_options(sub):
     v.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
     v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
     v.add_argument("--out", required=True, help="output directory (CSV, JSON, plot, reference)")
-    v.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    v.add_argument("-q", "--quiet", action="store_true", help="print only warnings and errors")
 
     e = sub.add_parser("speedup", help="the paper's experiment: per-map density-estimation "
                                        "time vs the number of maps (figures 5-6)")
@@ -205,7 +207,7 @@ def _experiment_options(sub):
     e.add_argument("--data", metavar="DIR", help="scene data directory ($PARTPM_DATA)")
     e.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
     e.add_argument("--out", required=True, help="output directory (CSV, JSON, plot, workloads)")
-    e.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    e.add_argument("-q", "--quiet", action="store_true", help="print only warnings and errors")
 
     b = sub.add_parser("bench", help="kd-tree, estimate, build, tracer and memory benchmarks "
                                      "against scipy, pykdtree and Mitsuba's path tracer")
@@ -219,15 +221,7 @@ def _experiment_options(sub):
     b.add_argument("-q", "--quiet", action="store_true", help="print only the table")
 
     h = sub.add_parser("hwsim", help="simulate a PE array on the workloads of 'partpm speedup'")
-    h.add_argument("workloads", help="a workloads/ directory written by 'partpm speedup'")
-    h.add_argument("--config", help="hardware configuration (TOML; every key, unit and default "
-                                     "in hwsim/default.toml)")
-    h.add_argument("--check", metavar="WORKLOAD_DIR",
-                   help="another scene's workloads (or calibration sets, 'partpm calibrate' "
-                        "DIR/sets): predict its measured per-map times with the costs "
-                        "calibrated on 'workloads'")
-    h.add_argument("--out", required=True, help="output directory (JSON, CSV, plots)")
-    h.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    hwsim_arguments(h)
 
     k = sub.add_parser("calibrate", help="per-map times and counts at several leaf sizes and "
                                          "radii; hwsim's costs fitted to them (the file "
@@ -267,7 +261,7 @@ def _experiment_options(sub):
     k.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
     k.add_argument("--out", required=True, help="output directory (sets/, calibration.json, "
                                                 "fitted_costs.toml, hwsim_fitted.toml)")
-    k.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    k.add_argument("-q", "--quiet", action="store_true", help="print only warnings and errors")
 
     m = sub.add_parser("scaling", help="strong scaling of the MPI backend over P ranks")
     m.add_argument("scene", help="built-in scene name or Mitsuba XML file")
@@ -283,7 +277,7 @@ def _experiment_options(sub):
                    help="timed reductions per message size in the micro-benchmark that fits "
                         "the alpha-beta model (default 15)")
     m.add_argument("--out", required=True, help="output directory (CSV, JSON, images)")
-    m.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    m.add_argument("-q", "--quiet", action="store_true", help="print only warnings and errors")
 
 
 def _figures_options(sub):
@@ -304,4 +298,4 @@ def _figures_options(sub):
     f.add_argument("--list", action="store_true",
                    help="list the steps, their commands and whether each would be reused, "
                         "and the README blocks; run nothing")
-    f.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    f.add_argument("-q", "--quiet", action="store_true", help="print only warnings and errors")

@@ -239,16 +239,20 @@ def run_render(args) -> int:
     seconds = {"load": clock.lap()}
     if args.checkpoint_every:
         integrator.on_pass = _checkpoints(args.checkpoint_every, out, integrator, film)
+    def described(e):
+        return last_line(e) if own else in_options(last_line(e))
+    backend = getattr(integrator, "backend", None)
+    if backend is not None and backend.name == "mpi":
+        backend.describe = described   # an MPI rank ends the job itself, with this message
     try:
         with _stop_on_interrupt(integrator):
             image = mi.render(scene, integrator=integrator, seed=args.seed)
     except (ValueError, RuntimeError, MemoryError) as e:
         if interrupted(e):
             raise KeyboardInterrupt from None
-        raise UsageError(last_line(e) if own else in_options(last_line(e))) from None
+        raise UsageError(described(e)) from None
     seconds["render"] = clock.lap(image)
     stats = getattr(integrator, "stats", {})
-    backend = getattr(integrator, "backend", None)
     if backend is not None and not backend.is_root:
         return 0    # rank 0 holds the gathered image and writes it
     _write(args, out, image, film, stats, seconds)

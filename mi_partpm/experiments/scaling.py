@@ -37,6 +37,14 @@ def _median(values):
     return float(np.median(np.asarray(values, dtype=np.float64)))
 
 
+def _failure(stderr: str) -> str:
+    """Why a render under mpiexec failed: the first line a rank wrote as its error (MPI's and
+    Dr.Jit's own lines about the abort may follow it), else the last line."""
+    lines = stderr.strip().splitlines()
+    said = [x.removeprefix("partpm: ") for x in lines if x.startswith("partpm: error")]
+    return (said or lines or ["(no message)"])[0 if said else -1]
+
+
 def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: int = 100_000,
                 resolution=(480, 480), spp: int = 4, repeats: int = 3,
                 data_dir: Optional[str] = None, mpiexec_args: Sequence[str] = (),
@@ -47,12 +55,21 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
     Each row holds the medians over the repeats of: the render time (trace, build, estimate
     and gather, as rank 0 measures it; process start-up and scene loading are not counted),
     the slowest rank's trace / build / estimate time, the reduction time and bytes, the
-    speedup and efficiency against the first P, the largest relative pixel difference
-    from the first P's image, and the version of the code that made it (``code``).
+    speedup and efficiency against P = 1 (``ranks`` must hold 1, and each P once; the
+    rows come in increasing P), the largest relative pixel difference from P = 1's image,
+    and the version of the code that made it (``code``).
     """
     for p in ranks:
         if p < 1 or p > maps:
             raise ValueError(f"every P in --ranks must be in [1, maps = {maps}], got {p}")
+    twice = sorted({p for p in ranks if list(ranks).count(p) > 1})
+    if twice:
+        raise ValueError(f"--ranks lists {', '.join(map(str, twice))} more than once: give "
+                         f"each P once")
+    if 1 not in ranks:
+        raise ValueError(f"--ranks must include 1: speedups, efficiencies and the model's "
+                         f"predictions are against one rank (got {','.join(map(str, ranks))})")
+    ranks = sorted(ranks)                        # P = 1 first: the rows' base
     if maps > photons:
         raise ValueError(f"--maps {maps} is more than --photons {photons}: every map needs at "
                          f"least one photon")
@@ -76,8 +93,8 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
             done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
                                   env=os.environ.copy())
             if done.returncode != 0:
-                last = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
-                raise RuntimeError(f"mpiexec -n {p} failed (exit {done.returncode}): {last}")
+                raise RuntimeError(f"mpiexec -n {p} failed (exit {done.returncode}): "
+                                   f"{_failure(done.stderr)}")
             runs.append(json.loads(Path(f"{stem}.json").read_text()))
         image = _read_exr(out / f"P{p}_run0.exr")
         if first_image is None:

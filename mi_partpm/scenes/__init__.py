@@ -200,17 +200,24 @@ def infinite_sphere(scene: mi.Scene):
 
 
 def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
-    """Where Mitsuba's box of the scene misses shapes (:func:`scene_bounds`), the emitters at
-    infinity (environment, directional, sun) would emit their photons from the wrong sphere
-    (from a point, for an invalid box): they are pointed at the sphere around the shapes'
-    true box (at every call: a freed scene's id and box may come back), with a warning once
+    """Point the emitters at infinity (environment, directional, sun) at the sphere around
+    the scene as it is now: Mitsuba's box of the scene, which a parameter update keeps up to
+    date but Mitsuba tells these emitters only when it loads the scene. Where that box misses
+    shapes (:func:`scene_bounds`) they would emit their photons from the wrong sphere (from
+    a point, for an invalid box): they are pointed at the sphere around the shapes' true
+    box (at every call: a freed scene's id and box may come back), with a warning once
     per box (a command that checks the scene by name and the render that checks it again
     warn once)."""
     true_box = _true_box(scene)
-    if true_box is None:
-        return
     infinite = [e for e in scene.emitters()
                 if mi.has_flag(e.flags(), mi.EmitterFlags.Infinite)]
+    if true_box is None:
+        # Mitsuba gives them their sphere when the scene is loaded only: after shapes move
+        # (mi.traverse and params.update()) they would emit from the old one (a floor
+        # scaled 3x: 0.85 of path under a constant sky). Renewed at every check (cheap).
+        for emitter in infinite:
+            emitter.set_scene(scene)
+        return
     what = "the scene" if name is None else f"scene {name!r}"
     # The repair itself is made every time (it is cheap), the warning once per box.
     _warn_once(("box", str(true_box)), "Mitsuba's bounding box of %s leaves out shapes (it "

@@ -1,0 +1,94 @@
+"""The package's messages (Python's ``logging``, logger ``"mi_partpm"``) in Mitsuba's log.
+
+Used from Python, as Mitsuba is, the warnings and progress lines of a render follow
+``mi.set_log_level``: they go through ``mi.Log`` with the level they were given (a warning
+as Warn, progress as Info), so a level of Error silences the warnings and a level of Info
+shows the progress, as for Mitsuba's own messages. Where the application has set up
+Python's logging (a handler on the root logger: the command line, pytest, a user's
+``logging.basicConfig``), that logging prints them instead and Mitsuba's log stays out of it.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import types
+
+import mitsuba as mi
+
+__all__ = ["LOGGER", "install", "follow_mitsuba_level"]
+
+#: The logger every module of the package writes to.
+LOGGER = "mi_partpm"
+
+#: Python's levels for Mitsuba's (Trace and Debug are both DEBUG).
+_PYTHON_LEVEL = {"Trace": logging.DEBUG, "Debug": logging.DEBUG, "Info": logging.INFO,
+                 "Warn": logging.WARNING, "Error": logging.ERROR}
+
+#: The level this module gave the logger (None: the logger's level is not ours to change).
+_SET_BY_US = [None]
+
+
+def _mitsuba_level(levelno: int):
+    """Mitsuba's level for a record's. An error is logged as Warn: Mitsuba raises an
+    exception for a message at its error level (Error), and the package raises its errors
+    itself."""
+    if levelno >= logging.WARNING:
+        return mi.LogLevel.Warn
+    return mi.LogLevel.Info if levelno >= logging.INFO else mi.LogLevel.Debug
+
+
+def _relay(level, message): mi.Log(level, message)  # noqa: E704 (one line: see _log_as)
+
+
+def _log_as(record, level, message):
+    """``mi.Log(level, message)``, which names the Python file, line and function that
+    called it: called here through a copy of :func:`_relay` that carries the record's own,
+    so the line names the place that wrote the message, not this module."""
+    code = _relay.__code__.replace(co_filename=record.pathname, co_name=record.funcName,
+                                   co_qualname=record.funcName,
+                                   co_firstlineno=max(int(record.lineno), 1))
+    types.FunctionType(code, _relay.__globals__)(level, message)
+
+
+class _MitsubaHandler(logging.Handler):
+    """Hands a record to Mitsuba's log unless the application's own logging prints it."""
+
+    def emit(self, record):
+        if logging.getLogger().handlers:
+            return                        # the root logger's handlers print it
+        try:
+            message = record.getMessage()
+            if mi.variant() is None or threading.current_thread() is not threading.main_thread():
+                # No variant (no Mitsuba log to write to), or a thread Mitsuba does not know.
+                if record.levelno >= logging.WARNING:
+                    print(message, file=sys.stderr, flush=True)
+                return
+            _log_as(record, _mitsuba_level(record.levelno), message)
+        except Exception:                 # noqa: BLE001 (logging must not break a render)
+            self.handleError(record)
+
+
+def install():
+    """Attach the handler to the package's logger (once)."""
+    logger = logging.getLogger(LOGGER)
+    if not any(isinstance(h, _MitsubaHandler) for h in logger.handlers):
+        logger.addHandler(_MitsubaHandler())
+
+
+def follow_mitsuba_level():
+    """Let the package's records through down to Mitsuba's current log level, where Mitsuba's
+    log prints them (called as a render starts: ``mi.set_log_level`` may have changed it). A
+    level the application set on the logger, or its own logging, is left to decide."""
+    logger = logging.getLogger(LOGGER)
+    ours = _SET_BY_US[0]
+    if logger.level not in (logging.NOTSET, ours):
+        return                            # the application's choice
+    if logging.getLogger().handlers or mi.variant() is None:
+        if ours is not None:              # the application's logging decides from now on
+            logger.setLevel(logging.NOTSET)
+            _SET_BY_US[0] = None
+        return
+    level = _PYTHON_LEVEL.get(mi.log_level().name, logging.WARNING)
+    logger.setLevel(level)
+    _SET_BY_US[0] = level
