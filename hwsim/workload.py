@@ -72,13 +72,17 @@ class MapWorkloads:
         return self._tile_counts[tile_queries]
 
 
-def _read_json(path: Path):
-    """The JSON document in ``path``; a ValueError naming the file when it is not JSON."""
+def _read_json(path: Path) -> dict:
+    """The JSON object in ``path``; a ValueError naming the file when it is not one."""
     try:
-        return json.loads(path.read_text())
+        document = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{path} is not valid JSON ({e}): write it again with the command "
                          f"that made it") from None
+    if not isinstance(document, dict):
+        raise ValueError(f"{path} holds a JSON {type(document).__name__}, not an object (format "
+                         f"in hwsim/WORKLOAD.md): write it again with the command that made it")
+    return document
 
 
 def folder_hint(d: Path) -> str:

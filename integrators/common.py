@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable
 
@@ -322,8 +323,19 @@ class PhotonMapper(mi.SamplingIntegrator):
         ranks return an image without emission and direct light."""
         _wait_for_background_tasks()
         self._cancelled = False
-        with dr.suspend_grad():       # not differentiable (see render_backward)
+        with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
             return self._render(scene, sensor, seed, spp, develop, evaluate)
+
+    @contextmanager
+    def _freeing_maps(self):
+        """The last wave's maps are of no use once a render ends, however it ends: an
+        integrator kept in a notebook held them (about 150 MB per 10^6 photons emitted) until
+        its next render."""
+        try:
+            yield
+        finally:
+            for layer in self._layers:
+                layer.maps = None
 
     def _not_differentiable(self):
         raise NotImplementedError(
@@ -339,7 +351,6 @@ class PhotonMapper(mi.SamplingIntegrator):
         self._not_differentiable()
 
     def _render(self, scene, sensor, seed, spp, develop, evaluate):
-        follow_mitsuba_level()
         if not develop and self.backend.name != "local":
             raise ValueError(f"develop=False is not supported with backend={self.backend.name!r}"
                              f": render with develop=True")
@@ -492,10 +503,6 @@ class PhotonMapper(mi.SamplingIntegrator):
 
     def _finish(self, terms):
         self.after_estimate()
-        # The last wave's maps are of no use after the render: an integrator kept in a
-        # notebook held them (about 150 MB per 10^6 photons emitted) until its next render.
-        for layer in self._layers:
-            layer.maps = None
         # The radii a next pass would search with (a render of one pass searched with the
         # fixed radius alone, and its stats say so: no final radius).
         for term in terms:
@@ -563,7 +570,10 @@ class PhotonMapper(mi.SamplingIntegrator):
                              f"must be the scene's top-level integrator (its ranks gather "
                              f"whole images); use backend='local' inside moment or aov")
         _wait_for_background_tasks()
-        follow_mitsuba_level()
+        with follow_mitsuba_level(), self._freeing_maps():
+            return self._sample(scene, sampler, ray, active)
+
+    def _sample(self, scene, sampler, ray, active):
         check_emitters(scene)
         note_bent_bsdfs(scene)
         width = dr.width(ray.o)

@@ -174,14 +174,21 @@ def abort_on_error(comm, describe=None):
     ``SystemExit`` (``sys.exit`` in a callback) and ``KeyboardInterrupt``. ``describe``, when
     given, turns a bad-input error (``ValueError``, ``RuntimeError``, ``MemoryError``) into
     the message to print, and the job exits with 2, as the command line does for bad input
-    (it names its options where the integrator names its props).
+    (it names its options where the integrator names its props). A job of one rank raises
+    the exception as a local render would (a notebook's kernel is not ended).
     """
     try:
         yield
     except (Exception, SystemExit, KeyboardInterrupt) as e:   # noqa: BLE001
+        if comm.size == 1:
+            raise          # no other rank waits for this one: the caller hears of it as usual
         if describe is not None and isinstance(e, (ValueError, RuntimeError, MemoryError)) \
                 and not interrupted(e):
-            abort_job(comm, describe(e), 2)
+            try:
+                message = describe(e)
+            except Exception:   # noqa: BLE001  (nothing may keep the job from ending)
+                message = _message(e)
+            abort_job(comm, message, 2)
         abort_job(comm, _message(e), _exit_code(e, 1))
 
 

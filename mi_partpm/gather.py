@@ -42,7 +42,11 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
     if not len(points):
         return total, found
     limit = segment_limit(max_depth)
-    ctx = lobe_context(lobes)
+    # With lobes given (glossy = "trace": the diffuse ones), the null lobe too: Mitsuba 3.9's
+    # mask samples its null lobe whenever the type mask leaves it out (weight 1, even at
+    # opacity 1), and a gather ray from a masked diffuse surface was never a diffuse one. The
+    # null samples are dropped below with the other delta ones.
+    ctx = lobe_context(None if lobes is None else lobes | mi.BSDFFlags.Null)
     count = len(points)
     # The ray index and the sample count enter the kernels as opaque values, so every ray
     # runs the same kernels (compiled once) instead of kernels of its own.
@@ -55,7 +59,8 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
                                  mi.Point2f(rng.next_float32(), rng.next_float32()))
         # Only the non-delta lobes: the delta ones are the eye path's own continuation.
         active = dr.any(weight != 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-        beta = points.beta * weight / dr.opaque(mi.Float, samples)
+        # The ray's own throughput: accumulate() multiplies by the visible point's beta.
+        beta = weight / dr.opaque(mi.Float, samples)
         ray = si.spawn_ray(si.to_world(bs.wo))
         # Segments left: the eye path's, this one, then photons of max_bounce - 1 at most.
         bounce_left = points.max_bounce - 1 if max_depth != UNLIMITED_DEPTH else None

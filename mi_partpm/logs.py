@@ -13,6 +13,7 @@ import logging
 import sys
 import threading
 import types
+from contextlib import contextmanager
 
 import mitsuba as mi
 
@@ -24,10 +25,6 @@ LOGGER = "mi_partpm"
 #: Python's levels for Mitsuba's (Trace and Debug are both DEBUG).
 _PYTHON_LEVEL = {"Trace": logging.DEBUG, "Debug": logging.DEBUG, "Info": logging.INFO,
                  "Warn": logging.WARNING, "Error": logging.ERROR}
-
-#: The level this module gave the logger (None: the logger's level is not ours to change).
-_SET_BY_US = [None]
-
 
 def _mitsuba_level(levelno: int):
     """Mitsuba's level for a record's. An error is logged as Warn: Mitsuba raises an
@@ -51,20 +48,35 @@ def _log_as(record, level, message):
     types.FunctionType(code, _relay.__globals__)(level, message)
 
 
+def _application_logs() -> bool:
+    """Whether the application's logging prints the package's records: a handler other than
+    this module's on the package's logger or on a logger it propagates to (the root's)."""
+    logger = logging.getLogger(LOGGER)
+    while logger is not None:
+        if any(not isinstance(h, _MitsubaHandler) for h in logger.handlers):
+            return True
+        logger = logger.parent if logger.propagate else None
+    return False
+
+
 class _MitsubaHandler(logging.Handler):
     """Hands a record to Mitsuba's log unless the application's own logging prints it."""
 
     def emit(self, record):
-        if logging.getLogger().handlers:
-            return                        # the root logger's handlers print it
+        if _application_logs():
+            return
         try:
             message = record.getMessage()
+            level = _mitsuba_level(record.levelno)
             if mi.variant() is None or threading.current_thread() is not threading.main_thread():
-                # No variant (no Mitsuba log to write to), or a thread Mitsuba does not know.
-                if record.levelno >= logging.WARNING:
+                # No variant (no Mitsuba log to write to), or a thread Mitsuba does not know:
+                # the message as it is, at Mitsuba's level.
+                shown = mi.variant() is None and level == mi.LogLevel.Warn or \
+                    mi.variant() is not None and mi.log_level() <= level
+                if shown:
                     print(message, file=sys.stderr, flush=True)
                 return
-            _log_as(record, _mitsuba_level(record.levelno), message)
+            _log_as(record, level, message)
         except Exception:                 # noqa: BLE001 (logging must not break a render)
             self.handleError(record)
 
@@ -76,19 +88,19 @@ def install():
         logger.addHandler(_MitsubaHandler())
 
 
+@contextmanager
 def follow_mitsuba_level():
-    """Let the package's records through down to Mitsuba's current log level, where Mitsuba's
-    log prints them (called as a render starts: ``mi.set_log_level`` may have changed it). A
-    level the application set on the logger, or its own logging, is left to decide."""
+    """For the time of a render: let the package's records through down to Mitsuba's current
+    log level (``mi.set_log_level`` may have changed it since the last), where Mitsuba's log
+    prints them; afterwards the logger's level is as it was, so logging the application sets
+    up later is not overruled. A level the application set on the logger, or its own
+    logging, is left to decide."""
     logger = logging.getLogger(LOGGER)
-    ours = _SET_BY_US[0]
-    if logger.level not in (logging.NOTSET, ours):
-        return                            # the application's choice
-    if logging.getLogger().handlers or mi.variant() is None:
-        if ours is not None:              # the application's logging decides from now on
-            logger.setLevel(logging.NOTSET)
-            _SET_BY_US[0] = None
+    if logger.level != logging.NOTSET or _application_logs() or mi.variant() is None:
+        yield                             # the application's choice
         return
-    level = _PYTHON_LEVEL.get(mi.log_level().name, logging.WARNING)
-    logger.setLevel(level)
-    _SET_BY_US[0] = level
+    logger.setLevel(_PYTHON_LEVEL.get(mi.log_level().name, logging.WARNING))
+    try:
+        yield
+    finally:
+        logger.setLevel(logging.NOTSET)

@@ -44,7 +44,7 @@ from .eyepath import lands_on, passes_through
 from .memory import TRACE_BATCH
 from .photons import Photons, empty_photons, encode_direction, spectrum_channels
 from .props import segment_limit
-from .scenes import check_scene, infinite_sphere
+from .scenes import check_scene, infinite_sphere, linear_part
 
 log = logging.getLogger("mi_partpm")
 
@@ -134,7 +134,7 @@ def _envmap_turn(emitter):
     any other emitter."""
     if emitter.class_name() != "EnvironmentMapEmitter":
         return None
-    return np.array(emitter.world_transform().matrix, dtype=np.float64).reshape(4, 4)[:3, :3]
+    return linear_part(emitter.world_transform())
 
 
 def _warn_if_scaled_envmap(emitter):

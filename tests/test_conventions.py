@@ -329,3 +329,23 @@ def test_messages_follow_mitsubas_log_level(tmp_path, level, warned, progress):
     if warned:                         # Mitsuba's line, naming where the warning was written
         line = next(x for x in out.splitlines() if "no photon was found" in x)
         assert "WARN" in line and "common.py:" in line, line
+
+
+def test_a_handler_on_the_packages_logger_prints_each_message_once(tmp_path):
+    """A handler the application puts on the logger "mi_partpm" prints the package's
+    messages, and Mitsuba's log does not print them too (it did: each warning came twice);
+    after the render the logger's level is as the application left it."""
+    import subprocess
+    import sys
+    script = tmp_path / "own_handler.py"
+    script.write_text(LOG_SCRIPT.replace(
+        "import mi_partpm\n",
+        "import mi_partpm, logging\n"
+        "logging.getLogger('mi_partpm').addHandler(logging.StreamHandler(sys.stdout))\n")
+        + "print('level after:', logging.getLogger('mi_partpm').level)\n")
+    done = subprocess.run([sys.executable, str(script), "Info"], capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = done.stdout + done.stderr
+    assert out.count("no photon was found at any visible point") == 1, out[-2000:]
+    assert "level after: 0" in out

@@ -880,6 +880,9 @@ def test_hwsim_cli_names_a_meta_json_that_is_not_json(tmp_path, capsys):
     (workloads / "meta.json").write_text("{\n  'version': 1\n}")
     assert main(["hwsim", str(workloads), "--out", str(tmp_path / "a")]) == 2
     assert f"{workloads / 'meta.json'} is not valid JSON (" in capsys.readouterr().err
+    (workloads / "meta.json").write_text("[1]")
+    assert main(["hwsim", str(workloads), "--out", str(tmp_path / "a")]) == 2
+    assert "holds a JSON list, not an object" in capsys.readouterr().err
 
 
 def test_python_m_hwsim_runs_the_report_without_mitsuba(tmp_path):

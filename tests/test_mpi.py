@@ -145,7 +145,8 @@ def test_bad_input_found_during_an_mpi_render_reads_as_the_command_lines(tmp_pat
            "--resolution", "16x16", "-o", str(tmp_path / "x.exr")]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
     assert done.returncode == 2, done.stderr[-2000:]
-    assert f"error on MPI rank 0 of {ranks}: --photons 100000 needs about" in done.stderr
+    where = ":" if ranks == 1 else f" on MPI rank 0 of {ranks}:"   # one rank: as locally
+    assert f"partpm: error{where} --photons 100000 needs about" in done.stderr
     assert "MemoryGuardError" not in done.stderr and "photon_count" not in done.stderr
     assert "terminate called" not in done.stderr
 
@@ -313,6 +314,20 @@ def test_scaling_command_small(tmp_path, capsys):
         assert main(["scaling", "cornell_box", "--ranks", ranks, "--maps", "4",
                      "--out", str(tmp_path)]) == 2
         assert said in capsys.readouterr().err
+
+
+def test_a_failed_scaling_run_is_named_by_the_ranks_own_line():
+    """What mpiexec's stderr says of a failed render: the first rank's own error line, not
+    the MPI or Dr.Jit lines about the abort that may come after it."""
+    from mi_partpm.experiments.scaling import _failure
+    stderr = ("scene cornell_box: 8x8\n"
+              "partpm: error on MPI rank 1 of 2: --photons 100 needs about 1 GB\n"
+              "partpm: error on MPI rank 0 of 2: --photons 100 needs about 1 GB\n"
+              "Abort(2) on node 1 (rank 1 in comm 0): application called MPI_Abort\n"
+              "terminate called without an active exception\n")
+    assert _failure(stderr) == "error on MPI rank 1 of 2: --photons 100 needs about 1 GB"
+    assert _failure("something else\nlast line\n") == "last line"
+    assert _failure("") == "(no message)"
 
 
 def test_render_prediction_from_one_rank_by_hand():
