@@ -111,7 +111,8 @@ class PartPMIntegrator(PhotonMapper):
            (Default: photons)
        * - hide_emitters
          - |bool|
-         - Emitters seen directly by the camera are black. (Default: false)
+         - Emitters seen directly by the camera are a miss: black, alpha 0, as for path.
+           (Default: false)
        * - kernel
          - |string|
          - Density kernel over the search disc: ``box`` (the paper's eq. 2), ``simpson``

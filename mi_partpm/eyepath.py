@@ -311,6 +311,10 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         emitter = si.emitter(scene, active)
         show = active & (emitter != None)   # noqa: E711
         if depth == 0 and hide_emitters:
+            # As Mitsuba's path: a camera ray that hits an emitter is a miss (black, alpha
+            # 0), not a surface that reflects light (which it rendered, alpha 1).
+            valid &= ~show
+            active &= ~show
             show = mi.Bool(False) & show
         mis = _emission_mis(scene, prev_si, prev_pdf, si, show) if trace else 1.0
         L = _add_light(L, dr.select(show, beta * emitter.eval(si, show) * mis, 0.0) * emission,

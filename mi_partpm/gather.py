@@ -62,12 +62,14 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
         # The ray's own throughput: accumulate() multiplies by the visible point's beta.
         beta = weight / dr.opaque(mi.Float, samples)
         ray = si.spawn_ray(si.to_world(bs.wo))
-        # Segments left: the eye path's, this one, then photons of max_bounce - 1 at most.
-        bounce_left = points.max_bounce - 1 if max_depth != UNLIMITED_DEPTH else None
-        hit, hit_bsdf, active, beta, seen = _to_non_delta(scene, ray, beta, active, rng,
-                                                          limit, caustics, glossy)
-        if bounce_left is not None:
-            active &= points.max_bounce > 1
+        # A light path here is the eye path's segments, the gather ray's and a photon's, at
+        # most max_bounce after the eye path's: the photons read after k gather segments
+        # may have max_bounce - k at most (bounce_left), the emission seen after k must
+        # have k <= max_bounce.
+        bounded = max_depth != UNLIMITED_DEPTH
+        hit, hit_bsdf, active, beta, seen, bounce_left = _to_non_delta(
+            scene, ray, beta, active, rng, limit, caustics, glossy,
+            max_bounce=points.max_bounce if bounded else None)
         est = gather_flux(maps, hit, hit_bsdf, radius, active, max_bounce=bounce_left,
                           kernel=kernel)
         value = dr.select(active, beta * est.radiance(), 0.0) + seen
@@ -79,19 +81,28 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
 
 
 def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool,
-                  glossy: bool = False, chain: int = 8):
+                  glossy: bool = False, chain: int = 8, max_bounce=None):
     """Follow delta lobes (and with ``glossy`` glossy ones) from ``ray`` to the first surface
     with a non-delta lobe (with ``glossy``: a diffuse lobe) where the ray stops (at one with
     delta lobes too, half the rays go on through those), at most ``chain`` bounces: (hit,
     its BSDF, reached, throughput, emission seen after one bounce or more when
-    ``caustics``)."""
+    ``caustics``, the most segments a photon read at the hit may have). ``max_bounce`` (per
+    ray; None: unlimited) bounds the segments of the ray's chain and a photon's together:
+    emission seen after k segments counts where k <= max_bounce, the hit reached after k is
+    read for photons of max_bounce - k segments at most (and not at all below 1)."""
     seen = dr.zeros(mi.Spectrum, dr.width(beta))
+    bounded = max_bounce is not None
+    left = mi.UInt32(max_bounce) if bounded else None     # segments left before this one
+    bounce_left = dr.zeros(mi.UInt32, dr.width(beta)) if bounded else None
     ctx_through = lobe_context(mi.BSDFFlags.Delta | mi.BSDFFlags.Glossy if glossy
                                else mi.BSDFFlags.Delta)
     ctx_delta = lobe_context(mi.BSDFFlags.Delta)
     hit = dr.zeros(mi.SurfaceInteraction3f, dr.width(beta))
     reached = dr.zeros(mi.Bool, dr.width(beta))
     for step in range(min(chain, max(limit - 1, 1))):
+        if bounded:                      # this segment must fit, and leaves left - 1
+            active &= left >= 1
+            left = dr.select(left >= 1, left - 1, 0)
         si = scene.ray_intersect(ray, active)
         if caustics and step > 0:
             emitter = si.emitter(scene, active)
@@ -108,6 +119,9 @@ def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool,
         both = lands & mi.has_flag(flags, mi.BSDFFlags.Delta)
         on = both & (rng.next_float32() < 0.5)
         stop = lands & ~on
+        if bounded:                      # a photon read here needs a segment of its own
+            stop &= left >= 1
+            bounce_left = dr.select(stop, left, bounce_left)
         beta = dr.select(both, beta * 2.0, beta)
         hit = dr.select(stop, si, hit)
         reached |= stop
@@ -120,7 +134,7 @@ def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool,
         beta = dr.select(active, beta * weight, beta)
         active &= dr.any(weight != 0)
         ray = si.spawn_ray(si.to_world(bs.wo))
-        dr.eval(hit, reached, active, beta, ray, seen)
+        dr.eval(hit, reached, active, beta, ray, seen, left, bounce_left)
         if not dr.any(active)[0]:
             break
-    return hit, hit.bsdf(), reached, beta, seen
+    return hit, hit.bsdf(), reached, beta, seen, bounce_left

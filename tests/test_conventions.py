@@ -191,6 +191,32 @@ def test_alpha_is_one_where_a_visible_environment_is_seen(kind):
         assert alpha[kind].min() == (0.0 if hide else 1.0)
 
 
+@pytest.mark.parametrize("kind", ["partpm", "pm"])
+def test_hide_emitters_makes_a_visible_area_light_a_miss_as_in_path(kind):
+    """A lit rectangle light (a diffuse BSDF of 0.8 under a point light) seen by the camera
+    with hide_emitters: Mitsuba's path renders it black with alpha 0, as if the camera ray
+    had missed; partpm and pm rendered the light it reflects (0.23, alpha 1)."""
+    scene = mi.load_dict({
+        "type": "scene",
+        "cam": {"type": "perspective", "fov": 40,
+                "to_world": T().look_at([0, 0, 3], [0, 0, 0], [0, 1, 0]),
+                "film": {"type": "hdrfilm", "width": 16, "height": 16,
+                         "pixel_format": "rgba", "rfilter": {"type": "box"}}},
+        "light": {"type": "rectangle", "to_world": T().scale(0.5),
+                  "emitter": {"type": "area", "radiance": 5.0},
+                  "bsdf": {"type": "diffuse", "reflectance": 0.8}},
+        "front": {"type": "point", "position": [0, 0, 2], "intensity": 3.0}})
+    images = {}
+    for name in (kind, "path"):
+        props = {"type": name, "hide_emitters": True}
+        if name != "path":
+            props["photon_count"] = 20_000
+        images[name] = np.array(mi.render(scene, integrator=mi.load_dict(props), spp=4))
+    assert images["path"][8, 8].tolist() == [0, 0, 0, 0]       # the light's middle
+    np.testing.assert_array_equal(images[kind][..., 3], images["path"][..., 3])
+    assert images[kind][8, 8].tolist() == [0, 0, 0, 0]
+
+
 def test_gradients_are_refused_with_a_clear_error():
     """partpm has no derivatives: dr.backward through mi.render(..., params) reaches
     render_backward, which says so and names prb, and render() returns no gradients."""
