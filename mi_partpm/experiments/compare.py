@@ -92,8 +92,9 @@ class CompareSettings:
 #: ratio to the paper configuration's moves with the seed. Relative MSE against path over
 #: the paper configuration's, seeds 0 / 1 / 2: 0.57 / 0.55 / 0.89 with a final gather of 8
 #: and a quarter of the radius; 0.49 / 0.46 / 0.80 with this one
-#: (tuned on seed 0; seeds 1 and 2 checked it). Before the caustic map held the glossy
-#: caustics, seed 0 gave 0.71.
+#: (tuned on seed 0; seeds 1 and 2 checked it); 0.35 / 0.34 / 0.65 once the final gather
+#: counted a visible point's throughput once instead of twice (each seed against its own
+#: reference). Before the caustic map held the glossy caustics, seed 0 gave 0.71.
 BEST = {"direct": "nee", "glossy": "trace", "glossy_samples": 8, "final_gather": 16,
         "kernel": "simpson", "caustic_share": 0.5, "caustic_radius_scale": 0.5}
 
