@@ -683,3 +683,26 @@ def test_many_uneven_instances_are_one_warning(caplog):
     lines = [r for r in caplog.records if "scales unevenly" in r.getMessage()]
     assert len(lines) == 1 and "49 instances (" in lines[0].getMessage() and \
         "and 46 more" in lines[0].getMessage(), [r.getMessage() for r in lines]
+
+
+def test_a_medium_around_another_sensor_does_not_stop_a_render_through_the_first():
+    """Two cameras, the second inside fog: a render through the first has no medium on its
+    way (photons and eye paths see only surfaces there) and renders; one through the second
+    is refused, naming it. Any sensor's medium refused every render before."""
+    T = mi.ScalarTransform4f
+
+    def camera(medium):
+        cam = {"type": "perspective", "to_world": T().look_at([0, 0, 4], [0, 0, 0], [0, 1, 0]),
+               "film": {"type": "hdrfilm", "width": 8, "height": 8}}
+        return {**cam, "medium": {"type": "homogeneous"}} if medium else cam
+    scene = mi.load_dict({"type": "scene", "clear": camera(False), "foggy": camera(True),
+                          "ball": {"type": "sphere"},
+                          "light": {"type": "point", "position": [0, 3, 3]}})
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 2000})
+    assert np.array(mi.render(scene, integrator=integrator, sensor=0)).mean() > 0
+    with pytest.raises(Exception) as refused:
+        mi.render(scene, integrator=integrator, sensor=1)
+    error = refused.value
+    while error.__cause__ is not None:                # mi.render wraps the plugin's error
+        error = error.__cause__
+    assert "participating medium (around its sensor 'foggy')" in str(error), str(error)

@@ -302,9 +302,13 @@ def _sensor_name(sensor) -> str:
 
 
 def check_sensor(sensor, what: str = "the scene", spp: int = 0):
-    """Refuse a sensor whose film has no pixel or whose sampler takes no sample (``spp``,
-    if not 0, replaces the sampler's count): Mitsuba renders neither (its own integrators
-    end the process with a division by zero on a sample count of 0)."""
+    """Refuse the sensor a render looks through when a participating medium surrounds it
+    (only that one: another sensor of the scene may have one), or its film has no pixel, or
+    its sampler takes no sample (``spp``, if not 0, replaces the sampler's count): Mitsuba
+    renders neither of the last two (its own integrators end the process with a division by
+    zero on a sample count of 0)."""
+    if sensor.get_medium() is not None:
+        raise _medium_refusal(what, f"around its sensor {_sensor_name(sensor)}")
     size = [int(v) for v in sensor.film().crop_size()]
     if min(size) < 1:
         raise ValueError(f"{what}: the film of sensor {_sensor_name(sensor)} is {size[0]} x {size[1]} "
@@ -345,6 +349,3 @@ def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool 
     instances = [s for s in scene.shapes() if s.class_name() == "Instance"]
     if instances:
         _check_instances(scene, instances, what)
-    for sensor in scene.sensors():
-        if sensor.get_medium() is not None:
-            raise _medium_refusal(what, f"around its sensor {_sensor_name(sensor)}")
