@@ -99,6 +99,15 @@ class Term:
     compute: Callable
 
 
+def _maps_text(wave) -> str:
+    """A wave's maps for a progress line: one map, a range, or a rank's every P-th."""
+    if len(wave) == 1:
+        return f"map {wave[0]}"
+    if wave[-1] - wave[0] == len(wave) - 1:
+        return f"maps {wave[0]}-{wave[-1]}"
+    return f"{len(wave)} maps of {wave[0]}-{wave[-1]}"
+
+
 def _small_scene_hint(scene) -> str:
     """Where a scene is tiny (under 0.01 across), the likelier cause of photons that land
     nowhere: Mitsuba offsets rays by an epsilon that is not small against a scene 10^-4
@@ -450,11 +459,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         for wave_index, wave in enumerate(waves):
             self.wave_index = wave_index
             if len(waves) > 1:
-                maps = f"map {wave[0]}" if len(wave) == 1 else \
-                    f"maps {wave[0]}-{wave[-1]}" if wave[-1] - wave[0] == len(wave) - 1 else \
-                    f"{len(wave)} maps of {wave[0]}-{wave[-1]}"     # a rank's: every P-th
-                log.info("wave %d of %d: %s of %d", wave_index + 1, len(waves), maps,
-                         self.map_count)
+                log.info("wave %d of %d: %s of %d", wave_index + 1, len(waves),
+                         _maps_text(wave), self.map_count)
             for layer in self._layers:
                 self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave)
             if pass_index == 0 and wave_index == 0:

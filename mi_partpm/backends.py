@@ -97,12 +97,12 @@ def abort_job(comm, message, code: int = 1):
             report_error(comm, message)
     except BaseException:      # noqa: BLE001  (nothing may keep the job from ending)
         pass
-    # A rank that left the message to rank 0 waits longer, so that rank 0, which fails alike
-    # at about the same time, says it before the job ends.
     if comm.size == 1:         # no rank to stop: MPI_Abort of a lone rank ran the C++ exit
         sys.stdout.flush()     # handlers under Dr.Jit's live threads (terminate, exit 6)
         sys.stderr.flush()
         os._exit(code)
+    # A rank that left the message to rank 0 waits longer, so that rank 0, which fails alike
+    # at about the same time, says it before the job ends.
     time.sleep(SILENT_RANK_WAIT if _SILENCED else 1.0)
     comm.Abort(code)
     os._exit(code)

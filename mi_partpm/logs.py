@@ -4,8 +4,9 @@ Used from Python, as Mitsuba is, the warnings and progress lines of a render fol
 ``mi.set_log_level``: they go through ``mi.Log`` with the level they were given (a warning
 as Warn, progress as Info), so a level of Error silences the warnings and a level of Info
 shows the progress, as for Mitsuba's own messages. Where the application has set up
-Python's logging (a handler on the root logger: the command line, pytest, a user's
-``logging.basicConfig``), that logging prints them instead and Mitsuba's log stays out of it.
+Python's logging (a handler on the package's logger or on the root logger: the command line,
+pytest, a user's ``logging.basicConfig``), that logging prints them instead and Mitsuba's log
+stays out of it.
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ LOGGER = "mi_partpm"
 #: Python's levels for Mitsuba's (Trace and Debug are both DEBUG).
 _PYTHON_LEVEL = {"Trace": logging.DEBUG, "Debug": logging.DEBUG, "Info": logging.INFO,
                  "Warn": logging.WARNING, "Error": logging.ERROR}
+
 
 def _mitsuba_level(levelno: int):
     """Mitsuba's level for a record's. An error is logged as Warn: Mitsuba raises an
@@ -70,10 +72,9 @@ class _MitsubaHandler(logging.Handler):
             level = _mitsuba_level(record.levelno)
             if mi.variant() is None or threading.current_thread() is not threading.main_thread():
                 # No variant (no Mitsuba log to write to), or a thread Mitsuba does not know:
-                # the message as it is, at Mitsuba's level.
-                shown = mi.variant() is None and level == mi.LogLevel.Warn or \
-                    mi.variant() is not None and mi.log_level() <= level
-                if shown:
+                # the message as it is, at Mitsuba's level (its default, Warn, without one).
+                least = mi.LogLevel.Warn if mi.variant() is None else mi.log_level()
+                if level >= least:
                     print(message, file=sys.stderr, flush=True)
                 return
             _log_as(record, level, message)

@@ -331,8 +331,8 @@ def check_scene(scene: mi.Scene, name: Optional[str] = None, needs_sensor: bool 
     what = "the scene" if name is None else f"scene {name!r}"
     _repair_infinite_emitters(scene, name)
     if scene.shapes():
-        check_span(scene_size(scene), f"{what} is {{}} across (the longest side of its shapes' bounding "
-                   f"box)", "scale the scene up (a to_world scale)")
+        check_span(scene_size(scene), f"{what} is {{}} across (the longest side of its shapes' "
+                   f"bounding box)", "scale the scene up (a to_world scale)")
     if not scene.emitters():
         raise ValueError(f"{what} has no emitter: nothing would be lit (photon mapping needs "
                          f"at least one light)")
