@@ -25,6 +25,7 @@ object chosen once in the constructor; the phases never ask which one it is.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -149,6 +150,9 @@ class PhotonMapper(mi.SamplingIntegrator):
         #: limit does (the command line's first Ctrl-C); the image has the passes so far.
         self.stop_requested = None
         self._cancelled = False
+        # The maps, radius and statistics of a render are the integrator's: a render (or a
+        # wrapper's sample()) from a second thread waits for the one in progress to end.
+        self._busy = threading.RLock()
         self.params = read_photon_map_params(props, fixed_radius=self.fixed_radius)
         self.map_count = 1
         self.backend = LocalBackend()
@@ -206,7 +210,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         layer.maps = None           # the last wave's maps are freed before the next are traced
         photons = trace_photons(scene, layer.photon_count, self.map_count,
                                 stream_seed(p.seed ^ layer.salt, render_seed, pass_index),
-                                self._photon_depth(), p.rr_depth, maps=maps,
+                                self._photon_depth(layer), p.rr_depth, maps=maps,
                                 min_bounce=self.min_bounce(), paths=layer.paths,
                                 caustic_through=self.caustic_through(),
                                 caustic_past_landings=self.caustic_past_landings(),
@@ -234,11 +238,15 @@ class PhotonMapper(mi.SamplingIntegrator):
                           maps_owned=owned.tolist())
         return layer.maps
 
-    def _photon_depth(self) -> int:
-        """The longest photon path: ``max_depth`` - 1, which leaves one segment at least for
-        the eye path."""
+    def _photon_depth(self, layer=None) -> int:
+        """The longest photon path of ``layer``'s maps (of any layer's when None):
+        ``max_depth`` - 1, which leaves one segment at least for the eye path."""
         d = self.params.max_depth
         return d - 1 if d != UNLIMITED_DEPTH else UNLIMITED_DEPTH
+
+    def _eye_segments(self) -> str:
+        """What takes the segments of ``max_depth`` that photons do not have, for messages."""
+        return "the camera's takes the only one"
 
     def caustic_through(self) -> str:
         """What a caustic path bounces on (:data:`~mi_partpm.trace.CAUSTIC_THROUGH`): glossy
@@ -331,9 +339,10 @@ class PhotonMapper(mi.SamplingIntegrator):
         returns the image (its ``stats["ranks"]`` lists every rank's figures); the other
         ranks return an image without emission and direct light."""
         _wait_for_background_tasks()
-        self._cancelled = False
-        with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
-            return self._render(scene, sensor, seed, spp, develop, evaluate)
+        with self._busy:
+            self._cancelled = False
+            with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
+                return self._render(scene, sensor, seed, spp, develop, evaluate)
 
     @contextmanager
     def _freeing_maps(self):
@@ -430,11 +439,13 @@ class PhotonMapper(mi.SamplingIntegrator):
     def _warn_if_empty(self, scene):
         stored = sum(v for k, v in self.stats.items() if k.endswith("photons_stored"))
         if stored == 0:
-            depth = self._photon_depth()
+            depth = self._photon_depth(self._layers[0]) if self._layers else \
+                self._photon_depth()
             if depth != UNLIMITED_DEPTH and depth < self.min_bounce():
                 log.warning("no photon was stored: max_depth = %d %s", self.params.max_depth,
-                            "leaves photons no segment (the camera's takes the only one); only "
-                            "emitted light will show" if depth < 1 else
+                            f"leaves photons no segment ({self._eye_segments()}); only "
+                            f"emitted{' and sampled direct' * (self.params.direct == 'nee')} "
+                            f"light will show" if depth < 1 else
                             "leaves photons only direct light, which direct = 'nee' samples "
                             "instead; the maps add nothing")
             elif self.min_bounce() > 1:
@@ -576,7 +587,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                              f"must be the scene's top-level integrator (its ranks gather "
                              f"whole images); use backend='local' inside moment or aov")
         _wait_for_background_tasks()
-        with follow_mitsuba_level(), self._freeing_maps():
+        with self._busy, follow_mitsuba_level(), self._freeing_maps():
             return self._sample(scene, sampler, ray, active)
 
     def _sample(self, scene, sampler, ray, active):

@@ -18,7 +18,7 @@ from mi_partpm.progressive import (RadianceSum, SPPMState, accumulate, check_fir
                                    check_schedule, radius_schedule)
 from mi_partpm.trace import stream_seed
 from mi_partpm.props import (MAX_RADIUS, PROGRESSIVE_RADIUS_FRACTION, RADIUS_FRACTION,
-                             read_choice, read_float, read_int)
+                             UNLIMITED_DEPTH, read_choice, read_float, read_int)
 
 log = logging.getLogger("mi_partpm")
 
@@ -251,6 +251,19 @@ class PartPMIntegrator(PhotonMapper):
     def min_bounce(self) -> int:
         # A final gather reads the global map where its rays land: direct light there too.
         return 1 if self.final_gather else super().min_bounce()
+
+    def _photon_depth(self, layer=None) -> int:
+        # A final gather reads the global maps one segment past the eye path: their photons
+        # are a segment shorter (at max_depth 2 they would all be traced for nothing).
+        depth = super()._photon_depth(layer)
+        if self.final_gather and layer is not None and layer.name == "global" and \
+                depth != UNLIMITED_DEPTH:
+            return depth - 1
+        return depth
+
+    def _eye_segments(self) -> str:
+        return "the camera's and the final gather's take them" if self.final_gather else \
+            super()._eye_segments()
 
     def terms(self, layers, width: int, scene) -> list:
         """Per eye path: the global maps' estimate at its visible points (or, with a final

@@ -29,6 +29,7 @@ import mitsuba as mi
 
 from .eyepath import lobe_context, registry_id, registry_table, values_agree
 from .kdtree import knn_query, radius_query
+from .kdtree.radius import radius_array
 from .photonmap import PhotonMaps
 
 log = logging.getLogger("mi_partpm")
@@ -267,9 +268,9 @@ def gather_flux(maps: PhotonMaps, si: mi.SurfaceInteraction3f, bsdf, radius, act
         "group" (queries side by side walk together) or "own": see
         :func:`~mi_partpm.kdtree.radius_query`.
     """
-    radius2 = dr.square(mi.Float(radius))
-    est = _Estimator(maps, si, bsdf, active, radius2, max_bounce, kernel, lobes)
-    res = radius_query(maps.forest, si.p, mi.Float(radius), est.contribution, mi.Spectrum,
+    radius = radius_array(radius)
+    est = _Estimator(maps, si, bsdf, active, dr.square(radius), max_bounce, kernel, lobes)
+    res = radius_query(maps.forest, si.p, radius, est.contribution, mi.Spectrum,
                        est.active, maps=map_range, with_stats=True, accept=est.accept(),
                        state=est.lane, order=order, walk=walk, with_payload=True)
     total, stats = res

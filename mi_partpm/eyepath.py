@@ -302,7 +302,9 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     # through glass (a few paths, many bounces) no longer cost whole-wavefront passes.
     lanes, wavefront = None, sampler
     while depth < limit:
-        si = scene.ray_intersect(ray, active)
+        # Camera rays are coherent, as in Mitsuba's path (where two surfaces coincide,
+        # Embree's coherent traversal may report the other one: path's choice is the user's)
+        si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0 and prev is None, active)
         if depth == 0:
             # As Mitsuba's path: a ray that sees a visible environment is valid too (alpha 1).
             valid = active & (si.is_valid() | (not hide_emitters and
@@ -428,7 +430,8 @@ def _add_light(L, value, lanes):
     """``L`` (per wavefront lane) with ``value`` (per lane at work) added to it."""
     if lanes is None:
         return L + value
-    dr.scatter_add(L, value, lanes)
+    # distinct lanes: plain adds (the default mode compiles L's size into the kernel)
+    dr.scatter_add(L, value, lanes, mode=dr.ReduceMode.NoConflicts)
     return L
 
 
@@ -499,7 +502,7 @@ def _split_paths(scene, si, beta, lanes, depth, limit, bounded, rr_depth, nee, e
         sub = eye_paths(scene, sampler, ray, left, max(1, rr_depth - depth - 1), nee, False,
                         dr.any(weight != 0), emission, "trace", 1, beta * weight / samples,
                         seed, prev=(si, glossy_pdf), unsplit=unsplit)
-        dr.scatter_add(L, sub.emitted, lanes)
+        dr.scatter_add(L, sub.emitted, lanes, mode=dr.ReduceMode.NoConflicts)
         for points in sub.points.pieces():
             if len(points):
                 points.lane = dr.gather(mi.UInt32, lanes, points.lane)

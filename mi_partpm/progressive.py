@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from .kdtree.radius import MIN_RADIUS, below_min_radius
+from .kdtree.radius import MIN_RADIUS, below_min_radius, radius_array
 
 __all__ = ["SPPMState", "sppm_update", "accumulate", "RadianceSum", "radius_schedule",
            "check_first_pass", "check_schedule"]
@@ -58,7 +58,7 @@ class SPPMState:
     @classmethod
     def start(cls, width: int, radius, alpha: float) -> "SPPMState":
         return cls(N=dr.zeros(mi.Float, width), tau=dr.zeros(mi.Spectrum, width),
-                   r2=dr.zeros(mi.Float, width) + dr.square(mi.Float(radius)), alpha=alpha,
+                   r2=dr.zeros(mi.Float, width) + dr.square(radius_array(radius)), alpha=alpha,
                    start_radius=float(radius))
 
     @property
@@ -133,8 +133,13 @@ def accumulate(points, values, found, width: int):
             continue
         index = dr.arange(mi.UInt32, size) + dr.opaque(mi.UInt32, start)
         lane = dr.gather(mi.UInt32, points.lane, index)
-        dr.scatter_add(flux, dr.gather(mi.Spectrum, weighted, index), lane)
-        dr.scatter_add(count, mi.Float(dr.gather(type(found), found, index)), lane)
+        # Distinct lanes: plain adds. Dr.Jit's default mode on the LLVM backend copies a
+        # target of up to dr.expand_threshold() entries per thread and compiles its size
+        # into the kernel: a new kernel for every count of eye paths.
+        distinct = dr.ReduceMode.NoConflicts
+        dr.scatter_add(flux, dr.gather(mi.Spectrum, weighted, index), lane, mode=distinct)
+        dr.scatter_add(count, mi.Float(dr.gather(type(found), found, index)), lane,
+                       mode=distinct)
         dr.eval(flux, count)
         start += size
     return flux, count

@@ -1,5 +1,6 @@
 """partpm and pm behave like Mitsuba integrators: max_depth, the render seed, nested use
 (moment, aov) and every argument of render() mean what they mean for Mitsuba's ``path``."""
+import drjit as dr
 import numpy as np
 import pytest
 
@@ -375,3 +376,96 @@ def test_a_handler_on_the_packages_logger_prints_each_message_once(tmp_path):
     out = done.stdout + done.stderr
     assert out.count("no photon was found at any visible point") == 1, out[-2000:]
     assert "level after: 0" in out
+
+
+@pytest.mark.parametrize("props", [
+    {"type": "partpm", "map_count": 4, "passes": 3, "direct": "nee", "final_gather": 1},
+    {"type": "partpm", "map_count": 4, "caustic_photon_count": 2000},
+    {"type": "pm"},
+], ids=["partpm_gather_passes", "partpm_caustic", "pm"])
+def test_another_seed_spp_or_radius_compiles_no_kernel(props):
+    """A sweep or an animation renders again with another seed, spp or radius: Mitsuba's
+    path compiles no new kernel for that, and partpm and pm compile none that differs from
+    one they ran before in a number only. Values that change from render to render had been
+    compiled into kernels as constants: a new radius compiled 6-9 kernels of 390-560
+    operations (as long as the render itself at 128 x 128), every pass of a progressive
+    final gather 9-11 (its radius), and a new seed or spp those that held the count of eye
+    paths or visible points (pm: 10 kernels, 0.9 s, per render of a seed loop). Kernels are
+    compared by their code, so one on Mitsuba's disk cache counts too. Other renders may
+    still meet kernels of another shape (where the last eye paths still bouncing are
+    compacted, or a kernel runs over one lane, which takes its inputs as scalars):
+    variants of the data, compiled once each. Kernels under 20 operations compile in
+    milliseconds and are not counted (Dr.Jit's own dr.mean multiplies by 1/n, a constant)."""
+    import re
+    scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=1)
+    codes, shapes = set(), set()
+
+    def new_in_numbers_only(spp=2, seed=0, radius=0.1):
+        radius = {} if props["type"] == "pm" else {"radius": radius}
+        integrator = mi.load_dict({"photon_count": 4000, **props, **radius})
+        dr.kernel_history()                                  # clears the history
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            mi.render(scene, integrator=integrator, spp=spp, seed=seed)
+            history = [k for k in dr.kernel_history()
+                       if "ir" in k and k["operation_count"] >= 20]
+        found = []
+        for k in history:
+            code = re.sub(r"drjit_[0-9a-f]+|align \d+", "", k["ir"].getvalue())
+            shape = re.sub(r"\b(0x[0-9a-fA-F]+|\d+(\.\d+)?(e[-+]?\d+)?)\b", "#", code)
+            if code not in codes and shape in shapes:
+                found.append(k["operation_count"])
+            codes.add(code)
+            shapes.add(shape)
+        return found
+    new_in_numbers_only()
+    for change in ({"spp": 4}, {"seed": 1}, {"radius": 0.09}):
+        assert new_in_numbers_only(**change) == [], change
+
+
+def test_a_final_gather_traces_no_photon_longer_than_it_reads(caplog):
+    """A final gather reads the global maps one segment past the eye path, so their photons
+    have at most max_depth - 2 segments. They were traced to max_depth - 1: at max_depth 2
+    every stored photon went unread, and the warning blamed the radius ("the search is far
+    smaller than the photons' spacing"). Now max_depth 2 stores none and says why, and at
+    max_depth 3 the global maps hold the photons of one segment, as many as a render without
+    a gather at max_depth 2 stores (the same streams, cut at the same length)."""
+    scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=1)
+
+    def stored(**props):
+        integrator = mi.load_dict({"type": "partpm", "photon_count": 20_000, **props})
+        render(scene, integrator)
+        return integrator.stats["photons_stored"]
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        assert stored(max_depth=2, direct="nee", final_gather=2) == 0
+    assert "max_depth = 2 leaves photons no segment (the camera's and the final gather's" \
+        in caplog.text and "far smaller" not in caplog.text
+    assert stored(max_depth=3, direct="nee", final_gather=2) == stored(max_depth=2) > 0
+
+
+def test_camera_rays_see_what_paths_camera_rays_see_where_two_lights_coincide():
+    """Two lights on one rectangle, one facing each way (a two-sided panel made of two
+    shapes): which one a camera ray reports is Embree's choice, and Mitsuba's path asks for
+    coherent camera rays. partpm's were incoherent, and its camera saw the other panel's
+    back: 0 where path sees 6.2 (the panel's front). They are now coherent too: the same
+    pixels, up to float rounding."""
+    T = mi.ScalarTransform4f
+    panel = T().translate([0, 0.2, 0]).rotate([1, 0, 0], 90).scale(0.25)
+
+    def light(value, flip):
+        return {"type": "rectangle", "to_world": panel, "flip_normals": flip,
+                "emitter": {"type": "area", "radiance": {"type": "rgb", "value": value}}}
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": T().look_at(origin=[0, -0.8, 2], target=[0, 0.2, 0],
+                                           up=[0, 0, 1]),
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16}},
+        "floor": {"type": "rectangle", "bsdf": {"type": "diffuse"},
+                  "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90).scale(3)},
+        "down": light(10, False), "up": light([10, 5, 5], True)})
+    ref = render(scene, mi.load_dict({"type": "path", "max_depth": 2}), spp=4)
+    img = render(scene, mi.load_dict({"type": "partpm", "photon_count": 2000,
+                                      "max_depth": 2}), spp=4)
+    seen = ref.mean(-1) > 3
+    assert seen.sum() >= 4
+    np.testing.assert_allclose(img[seen], ref[seen], rtol=1e-4)

@@ -24,9 +24,9 @@ GOLDEN = Path(__file__).parent / "golden"
 
 
 def test_one_pass_is_the_single_pass_image():
-    """passes = 1 renders what the single-pass partpm rendered before progressive rendering
-    existed: the golden image was written by that code (see golden/README.md). Photons and
-    eye samples are the same. What may differ is float rounding: the order of additions, and,
+    """passes = 1 renders what the single-pass partpm rendered: the golden image was written
+    by the code before progressive rendering existed, and again when the photons' origin on
+    area lights moved (see golden/README.md). Photons and eye samples are the same. What may differ is float rounding: the order of additions, and,
     on another CPU (another vector width, fused multiply-adds or not), a photon lying exactly
     on a query's radius may fall in or out. One photon of the 100-300 found per pixel moves
     the pixel by 0.3-1%. So: all but 1% of the values within 1e-5 relative, none off by more

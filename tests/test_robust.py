@@ -706,3 +706,31 @@ def test_a_medium_around_another_sensor_does_not_stop_a_render_through_the_first
     while error.__cause__ is not None:                # mi.render wraps the plugin's error
         error = error.__cause__
     assert "participating medium (around its sensor 'foggy')" in str(error), str(error)
+
+
+def test_one_integrator_rendered_from_two_threads_renders_each_image_whole():
+    """A scene whose <integrator> is partpm, rendered from two threads: the maps, radius and
+    statistics of a render are the integrator's, and one thread's render freed the other's
+    maps (8 of 16 renders failed with AttributeError, one returned a wrong image without an
+    error). A render now waits for the one in progress; every image equals the same render
+    alone (up to the order of float additions)."""
+    import threading
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 20_000, "map_count": 4})
+    scenes = [mi_partpm.load_scene(name, resolution=(24, 24), spp=1)
+              for name in ("cornell_box", "cornell_box_diffuse")]
+    alone = [render(scene, integrator, seed=i + 1) for i, scene in enumerate(scenes)]
+    errors, worst = [], []
+
+    def renders(i):
+        for _ in range(3):
+            try:
+                img = render(scenes[i], integrator, seed=i + 1)
+                worst.append(float(np.abs(img - alone[i]).max()))
+            except Exception as e:                           # noqa: BLE001 (reported below)
+                errors.append(repr(e))
+    threads = [threading.Thread(target=renders, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == [] and len(worst) == 6 and max(worst) < 1e-4, (errors, worst)

@@ -867,7 +867,8 @@ def _shared_leaf_table(order, ids, leaf_first, leaf_tree, leaf_j, leaves, first_
     later = later[later < n]                                # (empty leaves at the very end)
     count = dr.zeros(mi.UInt32, n)
     if later.size:
-        dr.scatter_reduce(dr.ReduceOp.Add, count, 1, mi.UInt32(later.astype(np.uint32)))
+        dr.scatter_reduce(dr.ReduceOp.Add, count, 1, mi.UInt32(later.astype(np.uint32)),
+                          mode=dr.ReduceMode.Local)      # (see below) empty leaves share
     leaf = dr.prefix_reduce(dr.ReduceOp.Add, count, exclusive=False)
     base = mi.UInt32((leaf_base[t] + j * maps_in_tree[t]).astype(np.uint32))
     first_of = mi.UInt32(first_map[t].astype(np.uint32))
@@ -876,7 +877,10 @@ def _shared_leaf_table(order, ids, leaf_first, leaf_tree, leaf_j, leaves, first_
     perm = dr.argsort(entry)
     order = dr.gather(mi.UInt32, order, perm)
     count = dr.zeros(mi.UInt32, entries)
-    dr.scatter_reduce(dr.ReduceOp.Add, count, 1, entry)
+    # Not the default mode, which on the LLVM backend compiles the size of a target of up to
+    # dr.expand_threshold() entries into the kernel (a kernel per photon count); the lanes
+    # of a packet mostly share an entry, so they add up before the atomic add.
+    dr.scatter_reduce(dr.ReduceOp.Add, count, 1, entry, mode=dr.ReduceMode.Local)
     dr.eval(order, count)
     return order, dr.prefix_sum(count)
 

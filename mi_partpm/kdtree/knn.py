@@ -455,10 +455,11 @@ def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, n
     # The leaders: the first active lane with a finite point of each group; their own walk.
     groups = -(-width // size)
     lane = dr.arange(mi.UInt32, groups * size)
-    usable = dr.gather(mi.Bool, active & finite, dr.minimum(lane, width - 1)) & (lane < width)
+    last = dr.opaque(mi.UInt32, width - 1)       # a literal would compile anew per width
+    usable = dr.gather(mi.Bool, active & finite, dr.minimum(lane, last)) & (lane <= last)
     first = dr.block_reduce(dr.ReduceOp.Min, dr.select(usable, lane, 0xFFFFFFFF), size)
-    led = first < width
-    leader = dr.minimum(first, width - 1)
+    led = first <= last
+    leader = dr.minimum(first, last)
     lead = _knn_walk(forest, dr.gather(mi.Point3f, p, leader), k, contribution, result_type,
                      dr.gather(mi.Float, r2max, leader) if capped else r2max, mi.Bool(led),
                      walk, neighbours, accept, permute(state, leader, width))
@@ -528,8 +529,10 @@ def _put(into, other, lanes, active=True):
     (res, dist2, index), (theirs, d2, idx) = into, other
     for name in ("total", "radius2", "count"):
         dr.scatter(getattr(res, name), getattr(theirs, name), lanes, active)
-    dr.scatter_add(res.stats.nodes_visited, theirs.stats.nodes_visited, lanes, active)
-    dr.scatter_add(res.stats.photons_tested, theirs.stats.photons_tested, lanes, active)
+    dr.scatter_add(res.stats.nodes_visited, theirs.stats.nodes_visited, lanes, active,
+                   mode=dr.ReduceMode.NoConflicts)
+    dr.scatter_add(res.stats.photons_tested, theirs.stats.photons_tested, lanes, active,
+                   mode=dr.ReduceMode.NoConflicts)
     for mine, value in zip((dist2 or []) + (index or []), (d2 or []) + (idx or [])):
         dr.scatter(mine, value, lanes, active)
     dr.eval(res.total, res.radius2, res.count, res.stats.nodes_visited,

@@ -32,8 +32,8 @@ import numpy as np
 
 from .forest import RECORD_FLOATS, Forest, as_points, check_coordinates, morton_codes
 
-__all__ = ["radius_query", "QueryStats", "order_queries", "group_balls", "group_lanes", "ORDERS",
-           "WALKS"]
+__all__ = ["radius_query", "QueryStats", "order_queries", "group_balls", "group_lanes",
+           "radius_array", "ORDERS", "WALKS"]
 
 #: Query orders: "morton" sorts the query points along a Z-order curve before the walk (and
 #: returns results in the caller's order); "given" walks them as they come.
@@ -282,6 +282,13 @@ def _packet_lanes() -> int:
     return packet_lanes()
 
 
+def radius_array(r) -> mi.Float:
+    """``r`` as a Dr.Jit float: a Python number becomes an opaque value, so that a kernel
+    that uses it compiles once for every radius (a literal would be a new kernel per
+    value: a progressive final gather compiled each pass)."""
+    return dr.opaque(mi.Float, float(r)) if isinstance(r, (int, float)) else mi.Float(r)
+
+
 def group_balls(p, r, active, width):
     """The ball each lane walks with: the ball around its group's balls (the group: the
     :data:`GROUP_LANES` lanes side by side, in walking order), or its own.
@@ -297,14 +304,15 @@ def group_balls(p, r, active, width):
 
     Returns ``(centre, radius)`` per lane."""
     size = group_lanes(p)
-    r = mi.Float(r) + dr.zeros(mi.Float, width)
+    r = radius_array(r) + dr.zeros(mi.Float, width)
     ok = mi.Bool(active) & dr.isfinite(p.x) & dr.isfinite(p.y) & dr.isfinite(p.z) & \
         dr.isfinite(r) & (r >= 0)
     groups = -(-width // size)
     if width % size == 0:
         member, at, own = ok, p, r
     else:                                   # the last group is padded with its last lane
-        lane = dr.minimum(dr.arange(mi.UInt32, groups * size), width - 1)
+        # the count is opaque: a literal would compile anew for every count of queries
+        lane = dr.minimum(dr.arange(mi.UInt32, groups * size), dr.opaque(mi.UInt32, width - 1))
         member, at = dr.gather(mi.Bool, ok, lane), dr.gather(mi.Point3f, p, lane)
         own = dr.gather(mi.Float, r, lane)
     lo = dr.block_reduce(dr.ReduceOp.Min, dr.select(member, at, dr.inf), size)
@@ -403,7 +411,7 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
             if with_stats else total
     perm = order_queries(p, width, order)
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
-    r = dr.opaque(mi.Float, r) if isinstance(r, (int, float)) else mi.Float(r)
+    r = radius_array(r)
     p, r, active = permute(p, perm, width), permute(r, perm, width), permute(active, perm, width)
     ball = group_balls(p, r, active, width) if walk == "group" else (p, r)
     contribution = typed_contribution(contribution, result_type)
