@@ -18,7 +18,8 @@ from mi_partpm.progressive import (RadianceSum, SPPMState, accumulate, check_fir
                                    check_schedule, radius_schedule)
 from mi_partpm.trace import stream_seed
 from mi_partpm.props import (MAX_RADIUS, PROGRESSIVE_RADIUS_FRACTION, RADIUS_FRACTION,
-                             UNLIMITED_DEPTH, read_choice, read_float, read_int)
+                             MAX_RAYS_PER_POINT, UNLIMITED_DEPTH, read_choice, read_float,
+                             read_int)
 
 log = logging.getLogger("mi_partpm")
 
@@ -146,8 +147,8 @@ class PartPMIntegrator(PhotonMapper):
            >= 1. (Default: 1)
        * - final_gather
          - |int|
-         - Rays of a final gather at every visible point, >= 0; 0 is off. With n > 0 (needs
-           direct = nee) the global maps are read only where those BSDF-sampled rays land,
+         - Rays of a final gather at every visible point, in [0, 4096]; 0 is off. With n > 0
+           (needs direct = nee) the global maps are read only where those BSDF-sampled rays land,
            caustics come from the caustic maps (or, without them, from the gather rays that
            reach an emitter through mirrors and glass): Jensen's two-pass method. With glossy
            = trace and a caustic map, the gather rays go on through glossy surfaces too and
@@ -203,7 +204,7 @@ class PartPMIntegrator(PhotonMapper):
         self.caustic_photon_count = read_int(props, "caustic_photon_count", 0, low=0)
         self.caustic_radius, self.caustic_radius_fraction = _read_radius_pair(
             props, "caustic_radius", "caustic_radius_fraction")
-        self.final_gather = read_int(props, "final_gather", 0, low=0)
+        self.final_gather = read_int(props, "final_gather", 0, low=0, high=MAX_RAYS_PER_POINT)
         if self.final_gather and self.params.direct != "nee":
             raise ValueError(f"final_gather = {self.final_gather} needs direct = 'nee': "
                              f"direct light at the first hit is sampled, and the global map "

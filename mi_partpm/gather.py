@@ -18,6 +18,9 @@ eye paths' sampler is left as Mitsuba's loop expects it.
 """
 from __future__ import annotations
 
+import logging
+import time
+
 import drjit as dr
 import mitsuba as mi
 
@@ -26,6 +29,8 @@ from .eyepath import lands_on, lobe_context, passes_through
 from .props import UNLIMITED_DEPTH, segment_limit
 
 __all__ = ["final_gather"]
+
+log = logging.getLogger("mi_partpm")
 
 
 def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius: float,
@@ -51,6 +56,7 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
     # The ray index and the sample count enter the kernels as opaque values, so every ray
     # runs the same kernels (compiled once) instead of kernels of its own.
     n_samples = dr.opaque(mi.UInt64, samples)
+    start, said = time.perf_counter(), 0
     for j in range(samples):
         rng = mi.PCG32(count, dr.opaque(mi.UInt64, seed & 0xFFFFFFFFFFFFFFFF),
                        dr.arange(mi.UInt64, count) * n_samples + dr.opaque(mi.UInt64, j))
@@ -77,6 +83,11 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
         total += part_total
         found += part_found
         dr.eval(total, found)
+        elapsed = time.perf_counter() - start
+        if elapsed >= 10 * (said + 1) and j + 1 < samples:     # a line every 10 s or so
+            said = int(elapsed // 10)
+            log.info("final gather: %d of %d rays per visible point, %.0f s, about %.0f s "
+                     "left", j + 1, samples, elapsed, elapsed / (j + 1) * (samples - j - 1))
     return total, found
 
 

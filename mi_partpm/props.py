@@ -19,7 +19,8 @@ from typing import Optional
 __all__ = ["PhotonMapParams", "check_int", "check_float", "check_bool", "check_choice",
            "read_int", "read_float", "read_bool", "read_choice", "read_photon_map_params",
            "DIRECT_MODES", "UNLIMITED_DEPTH", "segment_limit", "RADIUS_FRACTION",
-           "PROGRESSIVE_RADIUS_FRACTION", "MAX_RADIUS", "KERNEL_NAMES", "GLOSSY_MODES"]
+           "PROGRESSIVE_RADIUS_FRACTION", "MAX_RADIUS", "KERNEL_NAMES", "GLOSSY_MODES",
+           "MAX_RAYS_PER_POINT"]
 
 #: ``max_depth`` of -1: no limit (Russian roulette ends the paths), as in Mitsuba.
 UNLIMITED_DEPTH = -1
@@ -41,6 +42,10 @@ KERNEL_NAMES = ("box", "simpson", "epanechnikov", "cone")
 #: What eye paths do at surfaces whose lobes are all glossy or delta: estimate from the map
 #: there, or trace on by BSDF sampling to the next surface with a diffuse lobe.
 GLOSSY_MODES = ("map", "trace")
+#: The most rays from one visible point: of a final gather (Jensen's method uses hundreds
+#: to a few thousand) or from a first glossy surface. At 480 x 480 and 4 spp, 4096 rays are
+#: 3.8 x 10^9 rays a pass.
+MAX_RAYS_PER_POINT = 4096
 
 
 def segment_limit(max_depth: int) -> int:
@@ -171,7 +176,8 @@ def read_photon_map_params(props, fixed_radius: bool = True) -> PhotonMapParams:
     p.hide_emitters = read_bool(props, "hide_emitters", p.hide_emitters)
     p.kernel = read_choice(props, "kernel", p.kernel, KERNEL_NAMES)
     p.glossy = read_choice(props, "glossy", p.glossy, GLOSSY_MODES)
-    p.glossy_samples = read_int(props, "glossy_samples", p.glossy_samples, low=1)
+    p.glossy_samples = read_int(props, "glossy_samples", p.glossy_samples, low=1,
+                                high=MAX_RAYS_PER_POINT)
     if p.glossy_samples > 1 and p.glossy != "trace":
         raise ValueError(f"glossy_samples = {p.glossy_samples} needs glossy = 'trace' (the "
                          f"samples are the rays traced from a glossy surface)")

@@ -119,6 +119,9 @@ SCALED_BY_DIRECTION_LENGTH = ("Projector",)
 #: rays from flat, box, cylinder and mesh lights found no hit on their own surface.
 EMISSION_OFFSET_SHARE = 1 / 16
 
+#: The most photon paths of one tracing run (their indices are 32-bit).
+MAX_RUN = 0xFFFFFFFF
+
 #: :func:`_emitter_table`'s kinds: power scaled by the direction's length, a rotated
 #: environment map, a surface (area) emitter.
 SCALED, ROTATED_ENVMAP, SURFACE = 1, 2, 3
@@ -323,7 +326,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     n_lanes = int(sizes[maps].sum())
     if n_lanes == 0 or max_depth < 1 or not scene.shapes():    # (no shape: every photon escapes)
         return empty_photons(photon_count, map_count)
-    if n_lanes > 0xFFFFFFFF:
+    if n_lanes > MAX_RUN:
         raise ValueError(f"a tracing run has at most 2^32 - 1 photons, got {n_lanes} (trace "
                          f"the maps in several runs: maps=...)")
     run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,

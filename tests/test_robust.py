@@ -145,6 +145,25 @@ def test_a_render_with_a_sample_count_of_0_is_refused_not_a_crash():
      r"--out '.*/file/out' cannot be made: '.*/file' is a file, not a folder"),
     (["hwsim", "{tmp}/workloads", "--out", "{tmp}/file/out"],
      r"the output folder .*/file/out cannot be made: Not a directory"),
+    # Sizes the experiments met only inside a render (a traceback, exit status 1).
+    (["compare", "cornell_box", "--resolution", "32x32", "--spp", "100000000", "--out",
+      "{tmp}/new"], r"--resolution 32x32 at --spp 100000000 has 102,400,000,000 samples, "
+                    r"more than one wavefront"),
+    (["speedup", "cornell_box", "--resolution", "3000x3000", "--spp", "1000", "--out",
+      "{tmp}/new"], r"--resolution 3000x3000 at --spp 1000 has .* more than one wavefront"),
+    (["compare", "cornell_box", "--maps", "30000", "--photons", "20000", "--out",
+      "{tmp}/new"], r"--maps must be an integer in \[1, 20000\], got 30000 \(at most --photons\)"),
+    (["converge", "cornell_box", "--methods", "partpm,partpm", "--out", "{tmp}/new"],
+     r"--methods must name each method once, got partpm more than once"),
+    # calibrate named only the size of its fit, whatever else was wrong.
+    (["calibrate", "nowhere", "--maps", "1,2", "--leaf-sizes", "8", "--out", "{tmp}/new"],
+     r"scene 'nowhere' is neither a built-in"),
+    (["calibrate", "cornell_box", "--maps", "1,2", "--leaf-sizes", "8", "--radius-fractions",
+      "2", "--out", "{tmp}/new"], r"--radius-fractions must be comma-separated numbers in"),
+    (["calibrate", "cornell_box", "--check", "{tmp}/none", "--out", "{tmp}/new"],
+     r"--check '.*/none' is not a folder"),
+    (["render", "cornell_box", "--stats-json", "", "-o", "{tmp}/x.exr"],
+     r"--stats-json needs a file name, got ''"),
 ])
 def test_cli_refuses_outputs_and_inputs_it_cannot_use_before_any_work(tmp_path, capsys, argv,
                                                                        message):
@@ -159,6 +178,46 @@ def test_cli_refuses_outputs_and_inputs_it_cannot_use_before_any_work(tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("partpm: error:") and __import__("re").search(message, err), err
     assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["compare", "cornell_box", "--photons", "1000000000000"],
+     r"--photons must be an integer in \[1, 4294967295\], got 1000000000000"),
+    (["render", "cornell_box", "--resolution", "60000x60000"],
+     r"--resolution 60000x60000 has 3,600,000,000 pixels, more than 2\^28"),
+    (["render", "cornell_box", "--direct", "nee", "--final-gather", "100000000"],
+     r"--final-gather must be an integer in \[1, 4096\], got 100000000"),
+    (["render", "cornell_box", "--integrator", "pm", "--max-radius", "-1"],
+     r"--max-radius must be a finite number in \[1e-15, 1e\+18\], got -1.0"),
+    (["calibrate", "cornell_box", "--threads", "100000"],
+     r"--threads must be an integer in \[1, \d+\], got 100000"),
+])
+def test_cli_refuses_sizes_past_what_runs_as_it_parses(tmp_path, capsys, argv, message):
+    """Past 2^32 photons (the experiments trace them in one run: the error named a Python
+    argument, after the work had begun), 2^28 pixels (Mitsuba's tensor failed: "Tensor():
+    invalid size"), 4096 gather rays (10^8 ran without an end or a line of progress), more
+    threads than 4 a core (Dr.Jit aborted); --max-radius said (0, inf) for the props' range."""
+    with pytest.raises(SystemExit) as e:
+        main(argv + ["--out" if argv[0] in ("compare", "calibrate") else "-o",
+                     str(tmp_path / "new")])
+    assert e.value.code == 2
+    assert __import__("re").search(message, capsys.readouterr().err)
+    assert not (tmp_path / "new").exists()
+
+
+def test_cli_errors_met_inside_an_experiments_render_are_one_line(tmp_path, capsys):
+    """An alpha that shrinks the radius below what float32 resolves is found when partpm's
+    render starts: Mitsuba wraps it in its RuntimeError, and converge ended in a traceback
+    (exit 1). Now one line naming --alpha, exit 2; and --caustic-photons 0 means off, as the
+    prop's 0 does (it was refused: "must be an integer >= 1")."""
+    assert main(["converge", "cornell_box", "--resolution", "8x8", "--reference-spp", "4",
+                 "--photons", "2000", "--time", "0.5", "--alpha", "1e-300", "--methods",
+                 "partpm", "--out", str(tmp_path / "v")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("partpm: error: --alpha 1e-300 shrinks the radius") and \
+        "Traceback" not in "".join(err)
+    assert main(["render", "cornell_box", "--caustic-photons", "0", "--photons", "2000",
+                 "--resolution", "8x8", "-q", "-o", str(tmp_path / "x.exr")]) == 0
 
 
 def test_a_scene_whose_box_is_repaired_is_said_once_and_not_as_a_warning(tmp_path, caplog,
@@ -571,10 +630,11 @@ def test_a_memory_limit_that_is_not_a_size_is_named(tmp_path, capsys, monkeypatc
 
 
 def test_a_scene_too_small_for_mitsubas_ray_offsets_is_said_to_be(caplog):
-    """A room 6e-5 across: Mitsuba's ray offsets step over its surfaces, so no photon lands
-    (its ptracer is black too); the warning said only that nothing was lit."""
+    """A room 2e-6 across: ray offsets step over its surfaces (Mitsuba's, 8.9e-5 near the
+    origin, and a photon's from its light, a sixteenth of that), so no photon lands (its
+    ptracer is black too); the warning said only that nothing was lit."""
     T = mi.ScalarTransform4f
-    s = 3e-5
+    s = 1e-6
     scene = mi.load_dict({
         "type": "scene",
         "floor": {"type": "rectangle", "to_world": T().scale(s).rotate([1, 0, 0], -90),
@@ -587,7 +647,7 @@ def test_a_scene_too_small_for_mitsubas_ray_offsets_is_said_to_be(caplog):
     with caplog.at_level("WARNING", logger="mi_partpm"):
         mi.render(scene, integrator=mi.load_dict({"type": "partpm", "photon_count": 2000}))
     assert "no photon was stored" in caplog.text
-    assert "or it is too small (6e-05 across) for Mitsuba's ray offsets" in caplog.text
+    assert "or it is too small (2e-06 across) for Mitsuba's ray offsets" in caplog.text
 
 
 def test_a_scene_with_two_sensors_says_which_one_the_command_renders(tmp_path, caplog):

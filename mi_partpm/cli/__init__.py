@@ -23,6 +23,7 @@ and exit status 2.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 
 from .common import UsageError, interrupted, parse_resolution
@@ -64,6 +65,11 @@ def _main(argv, comm=None) -> int:
                         else logging.INFO, format="%(message)s", stream=sys.stderr)
     try:
         return COMMANDS[args.command](args)
+    except BrokenPipeError:
+        # The reader of the output left (partpm ... | head): nothing more to say, and
+        # Python's own flush of stdout at exit must not fail again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except UsageError as e:
         from ..backends import report_error
         report_error(comm, str(e))

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+from contextlib import contextmanager
 from pathlib import Path
 
 from ..backends import interrupted  # noqa: F401  (the command line's name for it)
@@ -12,7 +13,11 @@ from ..props import check_float, check_int
 __all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
            "radius_float", "int_list", "setup", "progress", "last_line", "interrupted",
            "write_atomic", "check_writable", "check_folder", "check_scene_name",
-           "check_variant_name"]
+           "check_variant_name", "check_eye_pass", "user_errors", "MAX_PIXELS"]
+
+#: The most pixels a film may have: Mitsuba indexes a film's values (4 or 5 a pixel) with
+#: 32-bit integers (60000 x 60000 failed inside Mitsuba's tensor).
+MAX_PIXELS = 1 << 28
 
 
 class UsageError(Exception):
@@ -27,7 +32,12 @@ def parse_resolution(text: str):
         raise argparse.ArgumentTypeError(
             f"--resolution must look like WIDTHxHEIGHT with integers >= 1 (e.g. 480x480), "
             f"got {text!r}")
-    return int(parts[0]), int(parts[1])
+    width, height = int(parts[0]), int(parts[1])
+    if width * height > MAX_PIXELS:
+        raise argparse.ArgumentTypeError(
+            f"--resolution {width}x{height} has {width * height:,} pixels, more than 2^28 "
+            f"(16384 x 16384): Mitsuba indexes a film's values with 32-bit integers")
+    return width, height
 
 
 def _argument_type(convert, check):
@@ -131,6 +141,43 @@ def progress(args):
     return None if args.quiet else (lambda line: print(line, flush=True))
 
 
+def check_eye_pass(resolution, spp: int):
+    """Refuse, before any work, camera samples (``resolution`` x ``spp``) that one wavefront
+    of 2^32 lanes cannot hold or that alone would not fit the free memory."""
+    from .. import memory
+    width, height = resolution
+    samples = width * height * spp
+    if samples > 0xFFFFFFFF:
+        raise UsageError(f"--resolution {width}x{height} at --spp {spp} has {samples:,} "
+                         f"samples, more than one wavefront of 2^32 holds: lower --spp or "
+                         f"--resolution")
+    try:
+        memory.check_fits(memory.estimate_render(0, 1, width, height, spp))
+    except memory.MemoryGuardError as e:
+        raise UsageError(f"--resolution {width}x{height} at --spp {spp}: {e}") from None
+
+
+@contextmanager
+def user_errors(describe=None):
+    """Errors of the input met during an experiment, as one line (``describe``: how to word
+    a message; default as it is): a missing file, a value out of range, not enough memory,
+    also where Mitsuba's render wrapped them in its RuntimeError. A Ctrl-C stays one, and any
+    other error keeps its traceback."""
+    from ..memory import MemoryGuardError
+    try:
+        yield
+    except BaseException as e:
+        if interrupted(e):
+            raise KeyboardInterrupt from None
+        cause = e
+        while cause.__cause__ is not None:
+            cause = cause.__cause__
+        if isinstance(cause, (FileNotFoundError, ValueError, MemoryGuardError)):
+            message = last_line(e)
+            raise UsageError(describe(message) if describe else message) from None
+        raise
+
+
 def last_line(e: Exception) -> str:
     """The message of an error raised inside a plugin (Mitsuba wraps it in a traceback, and
     mi.render in a RuntimeError whose cause is the original error)."""
@@ -152,6 +199,8 @@ def _file_on_the_way(path: Path):
 def check_folder(path, option: str):
     """Refuse an output folder that cannot be made or written (a file on its way, no
     permission) before any work, naming ``option``; the folder is made when missing."""
+    if not str(path).strip():
+        raise UsageError(f"{option} needs a folder, got {str(path)!r}")
     path = Path(path)
     blocked = _file_on_the_way(path)
     if blocked is not None:
@@ -181,6 +230,8 @@ def check_scene_name(scene: str):
 def check_writable(path, option: str):
     """Refuse an output file that cannot be written (its folder is a file, or is not
     writable) before any work; its folder is made when missing."""
+    if not str(path).strip():
+        raise UsageError(f"{option} needs a file name, got {str(path)!r}")
     path = Path(path)
     blocked = _file_on_the_way(path.parent)
     if blocked is not None:

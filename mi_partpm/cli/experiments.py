@@ -6,13 +6,34 @@ Each reads its options, calls the experiment in :mod:`mi_partpm.experiments` (or
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
-from .common import (UsageError, check_folder, check_scene_name, check_variant_name,
-                     check_writable, int_list, last_line, progress, setup)
+from ..trace import MAX_RUN
+from .common import (UsageError, check_eye_pass, check_folder, check_scene_name,
+                     check_variant_name, check_writable, int_list, last_line, progress, setup,
+                     user_errors)
 
 __all__ = ["run_compare", "run_speedup", "run_bench", "run_hwsim", "run_scaling",
            "run_converge", "run_calibrate"]
+
+#: The options of the settings' fields that :func:`in_settings` names.
+SETTING_OPTIONS = {"photons": "--photons", "maps": "--maps", "spp": "--spp",
+                   "reference_spp": "--reference-spp", "radius_fraction": "--radius-fraction",
+                   "k": "--k", "alpha": "--alpha", "seconds": "--time", "methods": "--methods",
+                   "direct": "--direct", "resolution": "--resolution"}
+
+
+def in_settings(message: str) -> str:
+    """A message about a setting of :class:`~mi_partpm.experiments.compare.CompareSettings`
+    or its siblings, or about an integrator's prop, in the options that set them."""
+    from .render import in_options
+    found = re.match(r"(\w+) must (.*)", message)
+    if found and found.group(1) in SETTING_OPTIONS:
+        message = f"{SETTING_OPTIONS[found.group(1)]} must {found.group(2)}"
+        if found.group(1) == "maps":
+            message += " (at most --photons)"
+    return in_options(message)
 
 
 def run_compare(args) -> int:
@@ -26,16 +47,15 @@ def run_compare(args) -> int:
         resolution=args.resolution or (480, 480), spp=args.spp or 4,
         reference_spp=args.reference_spp, radius_fraction=args.radius_fraction, k=args.k,
         seed=args.seed, direct=args.direct, data_dir=args.data, best=not args.no_best)
-    try:
+    with user_errors(in_settings):
         settings.check()
-    except ValueError as e:
-        raise UsageError(str(e)) from None
+    from ..experiments.compare import REFERENCE_CHUNK_SPP
+    check_eye_pass(settings.resolution, settings.spp)
+    check_eye_pass(settings.resolution, min(settings.reference_spp, REFERENCE_CHUNK_SPP))
     check_scene_name(args.scene)
     check_folder(args.out, "--out")
-    try:
+    with user_errors(in_settings):
         result = run_compare(settings, args.out, progress=progress(args))
-    except (FileNotFoundError, ValueError) as e:
-        raise UsageError(last_line(e)) from None
     if not args.quiet:
         print(format_table(result))
         print(f"wrote    {args.out}/ (comparison.png, metrics.json, images and heat maps)")
@@ -77,14 +97,13 @@ def run_speedup(args) -> int:
     if twice:
         raise UsageError(f"--maps lists {', '.join(map(str, twice))} more than once: give "
                          f"each map count once")
+    check_eye_pass(args.resolution, args.spp)
     check_scene_name(args.scene)
     check_folder(args.out, "--out")
-    try:
+    with user_errors(in_settings):
         result = run_speedup(args.scene, maps, args.out, args.photons, args.resolution,
                              args.spp, args.repeats, args.radius_fraction, args.seed,
                              args.data, progress=progress(args))
-    except (FileNotFoundError, ValueError) as e:
-        raise UsageError(str(e)) from None
     if not args.quiet:
         print(format_speedup(result))
         print(f"wrote    {args.out}/speedup.csv, speedup.json, speedup.png and workloads/")
@@ -105,12 +124,25 @@ def run_calibrate(args) -> int:
         if not args.scene:
             raise UsageError("calibrate needs SCENE (or --refit to fit the sets in --out)")
         setup(args)
+        # Each option's own error first; the size of the fit last (it is about them all).
+        for scene in args.scene:
+            check_scene_name(scene)
         try:
             fracs = [float(v) for v in args.radius_fractions.split(",")]
+            if not all(0 < f <= 1 for f in fracs):
+                raise ValueError
         except ValueError:
             raise UsageError(f"--radius-fractions must be comma-separated numbers in (0, 1], "
                              f"got {args.radius_fractions!r}") from None
         leaves, maps = int_list("--leaf-sizes", args.leaf_sizes), int_list("--maps", args.maps)
+        photons = int_list("--photons", args.photons)
+        if max(photons) > MAX_RUN:
+            raise UsageError(f"--photons must be counts in [1, 2^32), got {max(photons)}")
+        check_eye_pass(args.resolution, args.spp)
+        if args.check and not Path(args.check).is_dir():
+            raise UsageError(f"--check {args.check!r} is not a folder (an earlier "
+                             f"calibrate's --out)")
+        check_folder(args.out, "--out")
         from hwsim.calibrate import COST_NAMES
         measured = len(leaves) * len(fracs) * sum(maps)
         if measured < len(COST_NAMES) + 1:   # checked before any map is timed
@@ -118,14 +150,11 @@ def run_calibrate(args) -> int:
                              f"{len(COST_NAMES) + 1} measured maps per scene; --leaf-sizes x "
                              f"--radius-fractions x the sum of --maps gives {len(leaves)} x "
                              f"{len(fracs)} x {sum(maps)} = {measured}: give more of any")
-        check_folder(args.out, "--out")
-        try:
+        with user_errors(in_settings):
             result = cal.run_calibrations(
-                args.scene, args.out, leaves, fracs, maps, int_list("--photons", args.photons),
-                args.resolution, args.spp, args.repeats, args.threads, args.seed, args.data,
-                args.check, progress=progress(args))
-        except (FileNotFoundError, ValueError) as e:
-            raise UsageError(str(e)) from None
+                args.scene, args.out, leaves, fracs, maps, photons, args.resolution,
+                args.spp, args.repeats, args.threads, args.seed, args.data, args.check,
+                progress=progress(args))
     if not args.quiet:
         print(cal.format_calibration(result))
         where = (f"{args.out}/{{{','.join(result['dirs'].values())}}}" if "dirs" in result
@@ -171,16 +200,15 @@ def run_converge(args) -> int:
         alpha=args.alpha, k=args.k, reference_spp=args.reference_spp,
         methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
         seed=args.seed, data_dir=args.data)
-    try:
+    with user_errors(in_settings):
         settings.check()
-    except ValueError as e:
-        raise UsageError(last_line(e)) from None
+    from ..experiments.converge import CHUNK_SPP
+    check_eye_pass(settings.resolution, settings.spp)
+    check_eye_pass(settings.resolution, min(settings.reference_spp, CHUNK_SPP))
     check_scene_name(args.scene)
     check_folder(args.out, "--out")
-    try:
+    with user_errors(in_settings):
         result = run(settings, args.out, progress=progress(args))
-    except (FileNotFoundError, ValueError) as e:
-        raise UsageError(last_line(e)) from None
     if not args.quiet:
         print(format_converge(result))
         print(f"wrote    {args.out}/converge.csv, converge.json, converge.png, reference.exr")

@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import argparse
+import os
 
 from hwsim.cli import add_arguments as hwsim_arguments
 
 from ..kdtree.knn import MAX_K
+from ..trace import MAX_RUN
 from .common import parse_resolution, positive_float, positive_int, radius_float, seed_int
 
 __all__ = ["build_parser"]
@@ -30,8 +32,11 @@ def _scene_options(p, compare: bool = False):
     p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
     p.add_argument("--maps", type=positive_int("--maps"),
                    help="number of partial photon maps n, in [1, --photons] (default 8)")
-    p.add_argument("--photons", type=positive_int("--photons"), default=100_000,
-                   help="photons emitted in total N, >= 1 (default 100000)")
+    # An experiment traces every map's photons in one run, of at most 2^32 - 1 paths.
+    p.add_argument("--photons", default=100_000,
+                   type=positive_int("--photons", high=MAX_RUN if compare else None),
+                   help="photons emitted in total N, >= 1" + (" and < 2^32" if compare else "")
+                   + " (default 100000)")
     p.add_argument("--k", type=positive_int("--k", 2, MAX_K),
                    help=f"photons per kNN estimate of pm, in [2, {MAX_K}] " + (
                        "(default: the k whose mean radius matches partpm's)" if compare
@@ -59,8 +64,8 @@ def _scene_options(p, compare: bool = False):
 
 def _size_options(p, spp, repeats, repeats_help):
     """The workload-size options of the experiment commands (paper sizes by default)."""
-    p.add_argument("--photons", type=positive_int("--photons"), default=100_000,
-                   help="photons emitted N (default 100000)")
+    p.add_argument("--photons", type=positive_int("--photons", high=MAX_RUN), default=100_000,
+                   help="photons emitted N, in [1, 2^32) (default 100000)")
     p.add_argument("--resolution", type=parse_resolution, default=(480, 480),
                    help="film size WxH (default 480x480)")
     if spp is not None:
@@ -95,7 +100,7 @@ def _render_options(sub):
     g.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
                    help="radius as a fraction of the scene's longest side (default 0.05; "
                         "0.025 for a progressive render: --passes > 1 or --time)")
-    r.add_argument("--max-radius", type=positive_float("--max-radius"),
+    r.add_argument("--max-radius", type=radius_float("--max-radius"),
                    help="cap of the kNN radius in world units (pm; default: none)")
     r.add_argument("--max-depth", type=int,
                    help="longest light path in segments, as for Mitsuba's path: -1 "
@@ -124,12 +129,12 @@ def _render_options(sub):
 
 def _quality_options(r):
     """The estimator's options beyond the paper (see the partpm plugin's docstring)."""
-    from ..props import GLOSSY_MODES, KERNEL_NAMES
+    from ..props import GLOSSY_MODES, KERNEL_NAMES, MAX_RAYS_PER_POINT
     r.add_argument("--kernel", choices=KERNEL_NAMES,
                    help="density kernel over the search disc (default box, the paper's)")
-    r.add_argument("--caustic-photons", type=positive_int("--caustic-photons"),
-                   help="photons per pass for caustic maps of their own, >= --maps "
-                        "(partpm; default: none)")
+    r.add_argument("--caustic-photons", type=positive_int("--caustic-photons", low=0),
+                   help="photons per pass for caustic maps of their own, 0 (off) or >= "
+                        "--maps (partpm; default: none)")
     g = r.add_mutually_exclusive_group()
     g.add_argument("--caustic-radius", type=radius_float("--caustic-radius"),
                    help="the caustic maps' radius in world units, in [1e-15, 1e18] (default: "
@@ -141,12 +146,14 @@ def _quality_options(r):
     r.add_argument("--glossy", choices=GLOSSY_MODES,
                    help="at glossy surfaces: estimate from the map there (default), or trace "
                         "on by BSDF sampling")
-    r.add_argument("--glossy-samples", type=positive_int("--glossy-samples"),
-                   help="rays traced from an eye path's first glossy surface, >= 1 (with "
-                        "--glossy trace; default 1)")
-    r.add_argument("--final-gather", type=positive_int("--final-gather"), metavar="RAYS",
-                   help="final gather rays per visible point, >= 1 (partpm, needs --direct "
-                        "nee; default: no final gather)")
+    r.add_argument("--glossy-samples",
+                   type=positive_int("--glossy-samples", high=MAX_RAYS_PER_POINT),
+                   help="rays traced from an eye path's first glossy surface, in [1, 4096] "
+                        "(with --glossy trace; default 1)")
+    r.add_argument("--final-gather", metavar="RAYS",
+                   type=positive_int("--final-gather", high=MAX_RAYS_PER_POINT),
+                   help="final gather rays per visible point, in [1, 4096] (partpm, needs "
+                        "--direct nee; default: no final gather)")
 
 
 def _experiment_options(sub):
@@ -174,8 +181,8 @@ def _experiment_options(sub):
                    help="film size WxH (default 160x160)")
     v.add_argument("--spp", type=positive_int("--spp"), default=4,
                    help="partpm's eye samples per pixel and pass (default 4)")
-    v.add_argument("--photons", type=positive_int("--photons"), default=100_000,
-                   help="partpm's photons per pass (default 100000)")
+    v.add_argument("--photons", type=positive_int("--photons", high=MAX_RUN), default=100_000,
+                   help="partpm's photons per pass, pm's in all, in [1, 2^32) (default 100000)")
     v.add_argument("--maps", type=positive_int("--maps"), default=8,
                    help="partpm's maps (default 8)")
     v.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
@@ -248,8 +255,9 @@ def _experiment_options(sub):
     k.add_argument("--repeats", type=positive_int("--repeats"), default=3,
                    help="timed runs of every map, interleaved over the sets; medians are "
                         "fitted (default 3)")
-    k.add_argument("--threads", type=positive_int("--threads"), default=1,
-                   help="Dr.Jit threads of the timed kernels (default 1: one thread's costs)")
+    k.add_argument("--threads", type=positive_int("--threads", high=4 * (os.cpu_count() or 1)),
+                   default=1, help="Dr.Jit threads of the timed kernels, at most 4 per core "
+                                   "(default 1: one thread's costs)")
     k.add_argument("--seed", type=seed_int(), default=0, help="photon seed (default 0)")
     k.add_argument("--check", metavar="DIR",
                    help="another scene's calibration measured earlier (its --out): fit on "

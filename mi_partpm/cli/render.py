@@ -181,7 +181,7 @@ def _output_path(args) -> Path:
     # Before any work: an output that cannot be written would lose the whole render.
     check_writable(out, "-o")
     check_writable(out.with_suffix(".png"), "-o (its PNG)")
-    if args.stats_json:
+    if args.stats_json is not None:
         check_writable(args.stats_json, "--stats-json")
     return out
 

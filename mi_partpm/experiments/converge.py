@@ -87,6 +87,10 @@ class ConvergeSettings:
         if unknown or not self.methods:
             raise ValueError(f"methods must be some of {', '.join(METHODS)}, got "
                              f"{', '.join(self.methods) or 'none'}")
+        twice = sorted({m for m in self.methods if self.methods.count(m) > 1})
+        if twice:
+            raise ValueError(f"methods must name each method once, got {', '.join(twice)} "
+                             f"more than once")
 
 
 def _scene(s: ConvergeSettings, spp: int = 1):
