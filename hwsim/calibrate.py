@@ -575,6 +575,7 @@ def format_cross(cross: dict) -> str:
                      f"largest error {'ok' if ok['max_rel_error'] else 'no'}, costs "
                      f"{'all > 0' if ok['all_positive'] else 'some 0'})")
         lines += format_fit(d["fit"], d["fit_on"])
+        lines.append(f"  the fit of {d['fit_on']} on the maps of {d['predicts']}, per set:")
         lines += format_check(p)
     return "\n".join(lines)
 

@@ -1041,3 +1041,16 @@ def test_calibration_recovers_known_cache_costs():
                                                   "per_node_cache", "per_test_cache")])
     assert np.all(np.abs(got - truth) < 4 * se), (got - truth) / se
     assert f.self_check["median_rel_error"] < 2 * CAL_NOISE
+
+
+def test_the_cross_check_text_says_whose_maps_each_prediction_table_is_of():
+    """The table of a fit's prediction of the other scene, per set, came straight after the
+    fit's own design and error lines, so it read as the fitted scene's own (a QA reader took
+    the Buddha's radii and errors for the Cornell box's). A line now names both scenes."""
+    from hwsim.calibrate import cross_check, format_cross, synthetic_workloads
+    text = format_cross(cross_check(synthetic_workloads(seed=5), synthetic_workloads(seed=6),
+                                    "box", "buddha", resamples=20))
+    lines = text.splitlines()
+    for fit_on, predicts in (("box", "buddha"), ("buddha", "box")):
+        label = lines.index(f"  the fit of {fit_on} on the maps of {predicts}, per set:")
+        assert lines[label + 1].split()[0] == "set"
