@@ -794,3 +794,15 @@ def test_one_integrator_rendered_from_two_threads_renders_each_image_whole():
     for t in threads:
         t.join()
     assert errors == [] and len(worst) == 6 and max(worst) < 1e-4, (errors, worst)
+
+
+def test_a_scene_file_without_a_sensor_says_so_when_a_resolution_is_given(tmp_path, capsys):
+    """With --resolution, a scene file without a sensor was told it "does not take $resx"
+    (advice to edit a camera it does not have); it has no sensor, and now hears that."""
+    path = tmp_path / "scene.xml"
+    path.write_text('<scene version="3.0.0"><shape type="rectangle"><emitter type="area"/>'
+                    '</shape></scene>')
+    assert main(["render", str(path), "--resolution", "8x8", "--photons", "1000", "-o",
+                 str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("partpm: error:") and "has no sensor" in err, err

@@ -119,6 +119,9 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
     if spp is not None:
         params["spp"] = int(spp)
     text = path.read_text(errors="replace")
+    if ("resx" in params or "spp" in params) and "<sensor" not in text and \
+            "<include" not in text:
+        raise ValueError(f"scene file {str(path)!r} has no sensor: add a camera to render it")
     for name in params:
         if f"${name}" not in text:
             option = {"resx": "the resolution (--resolution)", "resy": "the resolution "
