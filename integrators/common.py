@@ -566,6 +566,12 @@ class PhotonMapper(mi.SamplingIntegrator):
             t0 = time.perf_counter()
             self.on_pass(info)
             self._paused += time.perf_counter() - t0
+            if self._cancelled and not stop and done < self.passes and \
+                    self.backend.name == "local":
+                # cancel() from on_pass: this pass was the last (on_pass was told it was
+                # not). Under MPI the ranks agree on it after the next pass.
+                stop = True
+                log.info("pass %d: stopped as asked", done)
         return stop
 
     def _remaining(self, elapsed: float, done: int) -> float:
@@ -588,7 +594,12 @@ class PhotonMapper(mi.SamplingIntegrator):
                              f"whole images); use backend='local' inside moment or aov")
         _wait_for_background_tasks()
         with self._busy, follow_mitsuba_level(), self._freeing_maps():
-            return self._sample(scene, sampler, ray, active)
+            try:
+                return self._sample(scene, sampler, ray, active)
+            finally:
+                # A cancel() during the wrapper's render (before this call too: the wrapper
+                # loads and compiles first) ends this one; the next starts afresh.
+                self._cancelled = False
 
     def _sample(self, scene, sampler, ray, active):
         check_emitters(scene)
@@ -602,7 +613,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         start = time.perf_counter()
         for pass_index in range(self.passes):
             self._photon_pass(scene, terms, eye.points, width, pass_index=pass_index)
-            if 0 < self.time_limit <= time.perf_counter() - start or \
+            self._add_stats(passes=1)
+            if 0 < self.time_limit <= time.perf_counter() - start or self._cancelled or \
                     (self.stop_requested is not None and self.stop_requested()):
                 break
         self._finish(terms)

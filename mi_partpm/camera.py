@@ -61,6 +61,7 @@ class CameraPass:
         self.aovs = list(aovs)
         self.film.prepare(self.aovs)
         self.sampler.set_samples_per_wavefront(self.spp)
+        self.seed = int(seed)
         self.sampler.seed(seed, self.width)
         idx = dr.arange(mi.UInt32, self.width)
         log_spp = int(np.log2(self.spp)) if self.spp > 0 else 0
@@ -92,15 +93,18 @@ class CameraPass:
             self.sample_pos = self.pixel + sampler.next_2d()
         else:
             u, rfilter = sampler.next_2d(), self.film.rfilter()
-            shift = mi.Vector2f(self.offsets.sample(u.x), self.offsets.sample(u.y))
-            self.sample_pos = self.pixel + 0.5 + shift
-            self.sign = dr.sign(rfilter.eval(shift.x)) * dr.sign(rfilter.eval(shift.y))
+            centre = self.pixel + 0.5
             if not self.film.sample_border():
-                # Mitsuba samples the crop window only: a position outside it weighs 0.
-                low = mi.Vector2f(self.film.crop_offset())
+                # Mitsuba samples the crop window only: each axis's offset is drawn from the
+                # part of the filter that keeps the position inside it (a sample drawn
+                # outside weighed 0, and a border pixel whose samples all fell there was
+                # black, alpha 0).
+                low = mi.Vector2f(self.film.crop_offset()) - centre
                 high = low + mi.Vector2f(self.film.crop_size())
-                inside = dr.all((self.sample_pos >= low) & (self.sample_pos < high))
-                self.sign = dr.select(inside, self.sign, 0.0)
+                u = mi.Vector2f([self._within(u[a], low[a], high[a]) for a in range(2)])
+            shift = mi.Vector2f(self.offsets.sample(u.x), self.offsets.sample(u.y))
+            self.sample_pos = centre + shift
+            self.sign = dr.sign(rfilter.eval(shift.x)) * dr.sign(rfilter.eval(shift.y))
             self.sign_sum = self.sign_sum + self.sign
             dr.schedule(self.sign_sum)
         self.drawn += 1
@@ -122,9 +126,20 @@ class CameraPass:
             weight = weight * self.sign
         return ray, weight
 
+    def _within(self, u, low, high):
+        """``u`` in [0, 1) moved into the share of the offsets' distribution that lies in
+        [``low``, ``high``) (offsets from the pixel's centre)."""
+        r = float(self.film.rfilter().radius())
+        a = self.offsets.eval_cdf_normalized(dr.clip(low, -r, r))
+        b = self.offsets.eval_cdf_normalized(dr.clip(high, -r, r))
+        return dr.minimum(dr.fma(u, b - a, a), dr.one_minus_epsilon(mi.Float))
+
     def advance(self):
-        """On to the next set of samples (a new pass)."""
-        self.sampler.advance()
+        """On to the next set of samples (a new pass): the sampler seeded anew from the
+        render's seed and the pass. Advancing it past its sample count hung Mitsuba's
+        stratified and multijitter samplers (at a count that is not a power of two)."""
+        seed = (self.seed * 0x9E3779B1 + self.drawn * 0x85EBCA77) & 0xFFFFFFFF
+        self.sampler.seed(seed, self.width)
         self.sampler.schedule_state()
 
     def develop(self, value, alpha, develop: bool = True):

@@ -806,3 +806,19 @@ def test_a_scene_file_without_a_sensor_says_so_when_a_resolution_is_given(tmp_pa
                  str(tmp_path / "x.exr")]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("partpm: error:") and "has no sensor" in err, err
+
+
+def test_the_png_beside_the_exr_keeps_the_films_alpha(tmp_path):
+    """README: the PNG holds the colour and alpha. Mitsuba's write_bitmap keeps RGB only in a
+    PNG, so an RGBA film's PNG had no alpha; it has now, equal to the EXR's (8 bits)."""
+    from PIL import Image
+    text = (Path(mi_partpm.__file__).parent / "scenes" / "cornell_box.xml").read_text()
+    xml = tmp_path / "rgba.xml"
+    xml.write_text(text.replace('<film type="hdrfilm">', '<film type="hdrfilm"><string '
+                                'name="pixel_format" value="rgba"/>'))
+    assert main(["render", str(xml), "--photons", "2000", "--resolution", "8x8", "-q", "-o",
+                 str(tmp_path / "x.exr")]) == 0
+    png = np.array(Image.open(tmp_path / "x.png"))
+    exr = np.array(mi.Bitmap(str(tmp_path / "x.exr")))
+    assert png.shape == (8, 8, 4) and exr.shape[2] == 4
+    np.testing.assert_allclose(png[..., 3] / 255, np.clip(exr[..., 3], 0, 1), atol=1 / 255)

@@ -401,8 +401,16 @@ def _write_image(out: Path, image, film):
     pixels = np.array(image)
     if pixels.ndim == 3 and pixels.shape[2] > colour:
         pixels = pixels[..., :colour]
+    # Mitsuba's write_bitmap keeps only RGB in a PNG: the format is given here, with alpha.
+    formats = {1: mi.Bitmap.PixelFormat.Y, 2: mi.Bitmap.PixelFormat.YA,
+               3: mi.Bitmap.PixelFormat.RGB, 4: mi.Bitmap.PixelFormat.RGBA}
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    fmt = formats[pixels.shape[2]]
+    png = mi.Bitmap(np.ascontiguousarray(pixels, dtype=np.float32), fmt).convert(
+        fmt, mi.Struct.Type.UInt8, True)
     write_atomic(out.with_suffix(".png"),
-                 lambda name: mi.util.write_bitmap(name, pixels, write_async=False))
+                 lambda name: png.write(name, mi.Bitmap.FileFormat.PNG))
 
 
 def _summary(stats: dict, seconds: dict, out: Path) -> str:
