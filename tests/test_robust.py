@@ -159,7 +159,7 @@ def test_a_render_with_a_sample_count_of_0_is_refused_not_a_crash():
     (["calibrate", "nowhere", "--maps", "1,2", "--leaf-sizes", "8", "--out", "{tmp}/new"],
      r"scene 'nowhere' is neither a built-in"),
     (["calibrate", "cornell_box", "--maps", "1,2", "--leaf-sizes", "8", "--radius-fractions",
-      "2", "--out", "{tmp}/new"], r"--radius-fractions must be comma-separated numbers in"),
+      "2", "--out", "{tmp}/new"], r"--radius-fractions must be distinct numbers in"),
     (["calibrate", "cornell_box", "--check", "{tmp}/none", "--out", "{tmp}/new"],
      r"--check '.*/none' is not a folder"),
     (["render", "cornell_box", "--stats-json", "", "-o", "{tmp}/x.exr"],
@@ -251,7 +251,8 @@ def test_a_data_folder_for_a_scene_that_reads_none_is_said_to_be_unused(tmp_path
 
 def test_resolution_for_a_scene_without_resx_says_so(tmp_path, capsys):
     path = tmp_path / "fixed.xml"
-    path.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    path.write_text('<scene version="3.0.0"><sensor type="perspective"/><shape type="sphere"/>'
+                    '</scene>')
     assert main(["render", str(path), "--resolution", "8x8", "-o", str(tmp_path / "x.exr")]) == 2
     assert "does not take $resx, so the resolution (--resolution) cannot be set" in \
         capsys.readouterr().err

@@ -129,11 +129,12 @@ def run_calibrate(args) -> int:
             check_scene_name(scene)
         try:
             fracs = [float(v) for v in args.radius_fractions.split(",")]
-            if not all(0 < f <= 1 for f in fracs):
-                raise ValueError
         except ValueError:
             raise UsageError(f"--radius-fractions must be comma-separated numbers in (0, 1], "
                              f"got {args.radius_fractions!r}") from None
+        if not all(0 < f <= 1 for f in fracs) or len(set(fracs)) < len(fracs):
+            raise UsageError(f"--radius-fractions must be distinct numbers in (0, 1], got "
+                             f"{args.radius_fractions!r}")
         leaves, maps = int_list("--leaf-sizes", args.leaf_sizes), int_list("--maps", args.maps)
         photons = int_list("--photons", args.photons)
         if max(photons) > MAX_RUN:
