@@ -341,8 +341,12 @@ class PhotonMapper(mi.SamplingIntegrator):
         _wait_for_background_tasks()
         with self._busy:
             self._cancelled = False
-            with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
-                return self._render(scene, sensor, seed, spp, develop, evaluate)
+            try:
+                with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
+                    return self._render(scene, sensor, seed, spp, develop, evaluate)
+            finally:
+                self._cancelled = False    # a cancel() after the last pass ends nothing next
+
 
     @contextmanager
     def _freeing_maps(self):

@@ -259,7 +259,7 @@ class PartPMIntegrator(PhotonMapper):
         depth = super()._photon_depth(layer)
         if self.final_gather and layer is not None and layer.name == "global" and \
                 depth != UNLIMITED_DEPTH:
-            return depth - 1
+            return max(depth - 1, 0)       # (not -1 at max_depth 1: that is "unlimited")
         return depth
 
     def _eye_segments(self) -> str:

@@ -232,6 +232,9 @@ def check_emitters(scene: mi.Scene, samples: int = 1024):
             _, weight = emitter.sample_ray(0.0, s[0], mi.Point2f(s[1], s[2]),
                                            mi.Point2f(s[3], s[4]), True)
             w = np.atleast_2d(np.array(mi.Spectrum(weight)))
+            if mi.has_flag(emitter.flags(), mi.EmitterFlags.Surface):
+                # emit() finds a surface emitter's point again (EMISSION_OFFSET_SHARE)
+                emitter.sample_position(0.0, mi.Point2f(s[1], s[2]), True)
         except RuntimeError as e:
             reason = " ".join(str(e).split())
             hint = ("its radiance is a texture Mitsuba can evaluate but not sample emission "

@@ -437,6 +437,8 @@ def test_a_final_gather_traces_no_photon_longer_than_it_reads(caplog):
         return integrator.stats["photons_stored"]
     with caplog.at_level("WARNING", logger="mi_partpm"):
         assert stored(max_depth=2, direct="nee", final_gather=2) == 0
+        # (at max_depth 1 the global maps' depth came out as -1: unlimited)
+        assert stored(max_depth=1, direct="nee", final_gather=2) == 0
     assert "max_depth = 2 leaves photons no segment (the camera's and the final gather's" \
         in caplog.text and "far smaller" not in caplog.text
     assert stored(max_depth=3, direct="nee", final_gather=2) == stored(max_depth=2) > 0

@@ -466,3 +466,4 @@ def test_a_progressive_render_with_a_sample_count_that_is_not_a_power_of_two_end
     img = render(scene, mi.load_dict({"type": "partpm", "photon_count": 20_000,
                                       "passes": 3}))
     assert abs(img.mean() / ref.mean() - 1) < 0.1
+

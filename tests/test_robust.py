@@ -823,3 +823,35 @@ def test_the_png_beside_the_exr_keeps_the_films_alpha(tmp_path):
     exr = np.array(mi.Bitmap(str(tmp_path / "x.exr")))
     assert png.shape == (8, 8, 4) and exr.shape[2] == 4
     np.testing.assert_allclose(png[..., 3] / 255, np.clip(exr[..., 3], 0, 1), atol=1 / 255)
+
+
+def test_an_experiment_turns_its_own_checks_into_one_line_and_keeps_a_librarys_traceback():
+    """Errors met inside an experiment become one line only where the project raised them
+    (a check of the input); a ValueError from inside NumPy is a bug, and keeps its
+    traceback instead of reading as bad input."""
+    from mi_partpm.cli.common import UsageError, user_errors
+    from mi_partpm.props import check_int
+    with pytest.raises(UsageError, match=r"--maps must be an integer >= 1, got 0"):
+        with user_errors(lambda m: m.replace("maps", "--maps", 1)):
+            check_int("maps", 0, low=1)
+    with pytest.raises(ValueError, match="could not be broadcast"):
+        with user_errors():
+            np.zeros(3) + np.zeros(4)
+
+
+def test_compare_checks_its_own_samples_not_the_references_chunks(tmp_path, monkeypatch):
+    """compare's check before any work sized the path reference's chunk of 256 spp as
+    partpm's eye pass (280 bytes a sample): at the default 480 x 480 it asked for 16.5 GB
+    and refused on a 16 GB machine, naming --spp 256. The reference is path's, which splits
+    its own samples; only partpm's and pm's eye pass is checked (here with 2 GB free)."""
+    import mi_partpm.experiments.compare as compare
+
+    class Reached(Exception):
+        pass
+
+    def stop(*args, **kwargs):
+        raise Reached
+    monkeypatch.setattr(compare, "run_compare", stop)
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "2e9")
+    with pytest.raises(Reached):
+        main(["compare", "cornell_box", "--reference-spp", "512", "--out", str(tmp_path / "c")])

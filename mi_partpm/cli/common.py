@@ -161,8 +161,9 @@ def check_eye_pass(resolution, spp: int):
 def user_errors(describe=None):
     """Errors of the input met during an experiment, as one line (``describe``: how to word
     a message; default as it is): a missing file, a value out of range, not enough memory,
-    also where Mitsuba's render wrapped them in its RuntimeError. A Ctrl-C stays one, and any
-    other error keeps its traceback."""
+    also where Mitsuba's render wrapped them in its RuntimeError. A Ctrl-C stays one. Any
+    other error keeps its traceback, and so does a ValueError that a library raised (NumPy,
+    Matplotlib, Python's own unpacking): only the project's own checks speak for the input."""
     from ..memory import MemoryGuardError
     try:
         yield
@@ -172,10 +173,27 @@ def user_errors(describe=None):
         cause = e
         while cause.__cause__ is not None:
             cause = cause.__cause__
-        if isinstance(cause, (FileNotFoundError, ValueError, MemoryGuardError)):
+        if isinstance(cause, MemoryGuardError) or (
+                isinstance(cause, (FileNotFoundError, ValueError)) and _raised_here(cause)):
             message = last_line(e)
             raise UsageError(describe(message) if describe else message) from None
         raise
+
+
+def _raised_here(e: BaseException) -> bool:
+    """Whether ``e`` was raised by the project's own code (its innermost frame is in
+    mi_partpm, its integrators or hwsim), not inside a library it called."""
+    import hwsim
+    import mi_partpm
+    from mi_partpm import integrators
+    roots = [str(Path(m.__file__).resolve().parent) for m in (mi_partpm, integrators, hwsim)]
+    tb = e.__traceback__
+    if tb is None:
+        return False
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    where = str(Path(tb.tb_frame.f_code.co_filename).resolve())
+    return any(where.startswith(root + os.sep) for root in roots)
 
 
 def last_line(e: Exception) -> str:
