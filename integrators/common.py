@@ -340,12 +340,11 @@ class PhotonMapper(mi.SamplingIntegrator):
         ranks return an image without emission and direct light."""
         _wait_for_background_tasks()
         with self._busy:
+            # (not cleared when it ends: inside aov Mitsuba calls render() and then sample(),
+            # and a cancel() during the one must end the other too)
             self._cancelled = False
-            try:
-                with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
-                    return self._render(scene, sensor, seed, spp, develop, evaluate)
-            finally:
-                self._cancelled = False    # a cancel() after the last pass ends nothing next
+            with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
+                return self._render(scene, sensor, seed, spp, develop, evaluate)
 
 
     @contextmanager

@@ -437,20 +437,30 @@ def test_cli_writes_the_films_channels_of_an_aov_integrator(tmp_path):
 def test_cancel_ends_a_progressive_render_inside_a_wrapper_and_its_passes_are_counted():
     """Inside aov, partpm's passes run in sample(): cancel() from another thread was ignored
     there (400 passes ran on) and stats["passes"] read 0. Now it stops after the pass in
-    progress and the passes are counted."""
+    progress and the passes are counted. (The thread asks once two passes are done: a
+    request before the render starts is dropped by the render's start, as Mitsuba's are.
+    Mitsuba calls the wrapped integrator's render() before its sample(), so the request may
+    land in either; sample() then stops after its first pass.)"""
     import threading
     scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=1)
     inner = mi.load_dict({"type": "partpm", "photon_count": 2000, "passes": 2000})
     wrapper = mi.load_dict({"type": "aov", "aovs": "dd:depth", "inner": inner})
-    render(scene, mi.load_dict({"type": "aov", "aovs": "dd:depth", "inner": mi.load_dict(
-        {"type": "partpm", "photon_count": 2000, "passes": 2})}))      # compiles the kernels
-    timer = threading.Timer(1.0, inner.cancel)
-    timer.start()
-    t0 = time.perf_counter()
-    render(scene, wrapper)
-    timer.join()
-    assert 1 <= inner.stats["passes"] < 2000 and time.perf_counter() - t0 < 30
+    done = threading.Event()
 
+    def ask():
+        while not done.is_set():
+            if inner.stats.get("passes", 0) >= 2:
+                inner.cancel()
+                return
+            time.sleep(0.01)
+    thread = threading.Thread(target=ask)
+    thread.start()
+    try:
+        render(scene, wrapper)
+    finally:
+        done.set()
+        thread.join()
+    assert 1 <= inner.stats["passes"] < 100
 
 @pytest.mark.parametrize("sampler", ["stratified", "multijitter"])
 def test_a_progressive_render_with_a_sample_count_that_is_not_a_power_of_two_ends(sampler):
