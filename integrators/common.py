@@ -346,7 +346,6 @@ class PhotonMapper(mi.SamplingIntegrator):
             with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
                 return self._render(scene, sensor, seed, spp, develop, evaluate)
 
-
     @contextmanager
     def _freeing_maps(self):
         """The last wave's maps are of no use once a render ends, however it ends: an
@@ -442,13 +441,12 @@ class PhotonMapper(mi.SamplingIntegrator):
     def _warn_if_empty(self, scene):
         stored = sum(v for k, v in self.stats.items() if k.endswith("photons_stored"))
         if stored == 0:
-            depth = self._photon_depth(self._layers[0]) if self._layers else \
-                self._photon_depth()
+            depth = self._photon_depth(self._layers[0] if self._layers else None)
+            shown = "emitted and sampled direct" if self.params.direct == "nee" else "emitted"
             if depth != UNLIMITED_DEPTH and depth < self.min_bounce():
                 log.warning("no photon was stored: max_depth = %d %s", self.params.max_depth,
                             f"leaves photons no segment ({self._eye_segments()}); only "
-                            f"emitted{' and sampled direct' * (self.params.direct == 'nee')} "
-                            f"light will show" if depth < 1 else
+                            f"{shown} light will show" if depth < 1 else
                             "leaves photons only direct light, which direct = 'nee' samples "
                             "instead; the maps add nothing")
             elif self.min_bounce() > 1:

@@ -27,7 +27,10 @@ import numpy as np
 
 from .scenes import check_sensor
 
-__all__ = ["CameraPass"]
+__all__ = ["CameraPass", "MAX_WAVEFRONT"]
+
+#: The most camera samples of one render: a wavefront's lanes are indexed with 32 bits.
+MAX_WAVEFRONT = 0xFFFFFFFF
 
 
 class CameraPass:
@@ -54,7 +57,7 @@ class CameraPass:
             self.offsets is None else 0
         film_size += 2 * border
         self.width = int(film_size[0] * film_size[1] * self.spp)
-        if self.width > 0xFFFFFFFF:
+        if self.width > MAX_WAVEFRONT:
             raise ValueError(f"the film ({film_size[0]} x {film_size[1]}) at spp = {self.spp} "
                              f"has {self.width:,} samples, more than one wavefront of 2^32 "
                              f"holds: lower spp or the resolution")

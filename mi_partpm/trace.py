@@ -139,7 +139,7 @@ def _emitter_table(scene: mi.Scene):
     for emitter, i in zip(scene.emitters(), ids):
         if emitter.class_name() in SCALED_BY_DIRECTION_LENGTH:
             table[i] = SCALED
-        elif mi.has_flag(emitter.flags(), mi.EmitterFlags.Surface):
+        elif _on_surface(emitter):
             table[i] = SURFACE
         to_world = _envmap_turn(emitter)
         if to_world is not None:
@@ -148,6 +148,12 @@ def _emitter_table(scene: mi.Scene):
                 centre, radius = infinite_sphere(scene)
                 envmap = (np.linalg.inv(to_world), [float(c) for c in centre], radius)
     return mi.UInt32(table), envmap, bool(np.any(table == SURFACE))
+
+
+def _on_surface(emitter) -> bool:
+    """Whether ``emitter`` lies on a shape (an area light): its photons leave from a point
+    :func:`emit` samples again."""
+    return mi.has_flag(emitter.flags(), mi.EmitterFlags.Surface)
 
 
 def _envmap_turn(emitter):
@@ -232,7 +238,7 @@ def check_emitters(scene: mi.Scene, samples: int = 1024):
             _, weight = emitter.sample_ray(0.0, s[0], mi.Point2f(s[1], s[2]),
                                            mi.Point2f(s[3], s[4]), True)
             w = np.atleast_2d(np.array(mi.Spectrum(weight)))
-            if mi.has_flag(emitter.flags(), mi.EmitterFlags.Surface):
+            if _on_surface(emitter):
                 # emit() finds a surface emitter's point again (EMISSION_OFFSET_SHARE)
                 emitter.sample_position(0.0, mi.Point2f(s[1], s[2]), True)
         except RuntimeError as e:

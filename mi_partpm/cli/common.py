@@ -145,9 +145,10 @@ def check_eye_pass(resolution, spp: int):
     """Refuse, before any work, camera samples (``resolution`` x ``spp``) that one wavefront
     of 2^32 lanes cannot hold or that alone would not fit the free memory."""
     from .. import memory
+    from ..camera import MAX_WAVEFRONT
     width, height = resolution
     samples = width * height * spp
-    if samples > 0xFFFFFFFF:
+    if samples > MAX_WAVEFRONT:
         raise UsageError(f"--resolution {width}x{height} at --spp {spp} has {samples:,} "
                          f"samples, more than one wavefront of 2^32 holds: lower --spp or "
                          f"--resolution")
@@ -170,9 +171,7 @@ def user_errors(describe=None):
     except BaseException as e:
         if interrupted(e):
             raise KeyboardInterrupt from None
-        cause = e
-        while cause.__cause__ is not None:
-            cause = cause.__cause__
+        cause = _root_cause(e)
         if isinstance(cause, MemoryGuardError) or (
                 isinstance(cause, (FileNotFoundError, ValueError)) and _raised_here(cause)):
             message = last_line(e)
@@ -196,11 +195,18 @@ def _raised_here(e: BaseException) -> bool:
     return any(where.startswith(root + os.sep) for root in roots)
 
 
+def _root_cause(e: BaseException) -> BaseException:
+    """The error at the end of ``e``'s chain of causes (mi.render wraps a plugin's error in a
+    RuntimeError caused by it)."""
+    while e.__cause__ is not None:
+        e = e.__cause__
+    return e
+
+
 def last_line(e: Exception) -> str:
     """The message of an error raised inside a plugin (Mitsuba wraps it in a traceback, and
     mi.render in a RuntimeError whose cause is the original error)."""
-    while e.__cause__ is not None:
-        e = e.__cause__
+    e = _root_cause(e)
     line = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
     # The exception's class name, which the traceback's last line starts with.
     return re.sub(r"^(?:\w+\.)*[A-Z]\w*(?:Error|Exception|Unavailable): ", "", line)
