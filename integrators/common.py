@@ -381,6 +381,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             self.radius = self.search_radius(scene)
             self._start_stats(seed)
             camera = CameraPass(scene, sensor, seed, spp, self.aov_names(), self.passes > 1)
+            self.backend.check_same(self._settings(scene, camera, seed))
             L, alpha = self._passes(scene, camera, seed)
             image = camera.develop(L, alpha, develop)
             if evaluate:
@@ -388,6 +389,19 @@ class PhotonMapper(mi.SamplingIntegrator):
             self.stats["peak_memory_bytes"] = memory.peak_rss_bytes()
             self.backend.collect(self.stats)
             return image
+
+    def _settings(self, scene, camera: CameraPass, seed: int) -> dict:
+        """What every process of a render must share for their partial images to add up:
+        the eye paths (film, crop, samples, seed), the integrator's props and the scene as
+        far as its size and counts tell it apart."""
+        film = camera.film
+        box = scene.bbox()
+        return {"seed": seed, "spp": camera.spp, "film size": tuple(film.size()),
+                "crop": (tuple(film.crop_size()), tuple(film.crop_offset())),
+                "integrator": str(self), "radius": self.radius,
+                "scene": (len(scene.shapes()), len(scene.emitters()),
+                          tuple(float(box.min[a]) for a in range(3)),
+                          tuple(float(box.max[a]) for a in range(3)))}
 
     def _passes(self, scene, camera: CameraPass, seed: int):
         """The passes of a render: per eye path, the mean light not from the maps and the
@@ -439,8 +453,10 @@ class PhotonMapper(mi.SamplingIntegrator):
         return eye
 
     def _warn_if_empty(self, scene):
-        stored = sum(v for k, v in self.stats.items() if k.endswith("photons_stored"))
-        if stored == 0:
+        """Warn when no map of the render (of any process) holds a photon, saying why."""
+        stored = self.backend.total(sum(v for k, v in self.stats.items()
+                                        if k.endswith("photons_stored")))
+        if stored == 0 and self.backend.reports:
             depth = self._photon_depth(self._layers[0] if self._layers else None)
             shown = "emitted and sampled direct" if self.params.direct == "nee" else "emitted"
             if depth != UNLIMITED_DEPTH and depth < self.min_bounce():
@@ -502,9 +518,14 @@ class PhotonMapper(mi.SamplingIntegrator):
         own maps (the caustic ones) hold none: the term then adds nothing."""
         if visible == 0:
             return
-        for j, term in enumerate(terms):
-            prefix = "" if term.name == "global" else f"{term.name}_"
-            stored = int(self.stats.get(f"{prefix}photons_stored", 0))
+        prefixes = ["" if term.name == "global" else f"{term.name}_" for term in terms]
+        # The maps of every process: the photons stored in all of them (the sums in
+        # ``arrays`` are every process's already).
+        every = [self.backend.total(int(self.stats.get(f"{prefix}photons_stored", 0)))
+                 for prefix in prefixes]
+        if not self.backend.reports:
+            return
+        for j, (term, prefix, stored) in enumerate(zip(terms, prefixes, every)):
             if stored == 0:
                 if prefix:
                     log.warning("no %s photon was stored: the scene has no such light path "
@@ -567,10 +588,11 @@ class PhotonMapper(mi.SamplingIntegrator):
             t0 = time.perf_counter()
             self.on_pass(info)
             self._paused += time.perf_counter() - t0
-            if self._cancelled and not stop and done < self.passes and \
-                    self.backend.name == "local":
-                # cancel() from on_pass: this pass was the last (on_pass was told it was
-                # not). Under MPI the ranks agree on it after the next pass.
+        if self.passes > 1 and not stop and done < self.passes:
+            # cancel() from on_pass: this pass was the last (on_pass was told it was not),
+            # on every process (one more agreement: a process whose on_pass cancelled asks
+            # the others, who ask as often whatever their on_pass did).
+            if self.backend.agree(self._cancelled):
                 stop = True
                 log.info("pass %d: stopped as asked", done)
         return stop

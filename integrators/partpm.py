@@ -18,8 +18,8 @@ from mi_partpm.progressive import (RadianceSum, SPPMState, accumulate, check_fir
                                    check_schedule, radius_schedule)
 from mi_partpm.trace import stream_seed
 from mi_partpm.props import (MAX_RADIUS, PROGRESSIVE_RADIUS_FRACTION, RADIUS_FRACTION,
-                             MAX_RAYS_PER_POINT, UNLIMITED_DEPTH, read_choice, read_float,
-                             read_int)
+                             MAX_RAYS_PER_POINT, UNLIMITED_DEPTH, check_choice, read_choice,
+                             read_float, read_int)
 
 log = logging.getLogger("mi_partpm")
 
@@ -220,6 +220,12 @@ class PartPMIntegrator(PhotonMapper):
                                       allowed=f"in [0 (as many as fit), map_count = "
                                               f"{self.map_count}]")
         self.backend = make_backend(read_choice(props, "backend", "local", BACKENDS),
+                                    self.map_count)
+
+    def run_on(self, backend: str):
+        """Run the maps on ``backend`` (one of the ``backend`` prop's values) from now on:
+        the command line's ``--backend`` given with a scene file's own partpm."""
+        self.backend = make_backend(check_choice("backend", backend, BACKENDS),
                                     self.map_count)
 
     def search_radius(self, scene: mi.Scene):

@@ -30,7 +30,7 @@ import numpy as np
 __all__ = ["launcher_ranks", "run_as_one_job", "abort_job", "report_error", "interrupted",
            "Backend", "LocalBackend", "MPIBackend", "make_backend", "BACKENDS", "comm_world",
            "owned_maps", "check_ranks", "allreduce_arrays", "abort_on_error",
-           "share_cores", "find_mpiexec", "MPIUnavailable"]
+           "share_cores", "find_mpiexec", "MPIUnavailable", "job_stats"]
 
 log = logging.getLogger("mi_partpm")
 
@@ -88,13 +88,13 @@ def owned_maps(rank: int, ranks: int, map_count: int) -> np.ndarray:
     return np.arange(rank, map_count, ranks, dtype=np.int64)
 
 
-def abort_job(comm, message, code: int = 1):
+def abort_job(comm, message, code: int = 1, alone: bool = False):
     """End the whole MPI job from this rank: print ``message`` (None: the rank printed its
-    own), give mpiexec a moment to forward it, abort, and exit (where the abort returns
-    before it ends this process)."""
+    own; ``alone``: an error no other rank can find, said at once), give mpiexec a moment
+    to forward it, abort, and exit (where the abort returns before it ends this process)."""
     try:
         if message:
-            report_error(comm, message)
+            report_error(comm, message, alone)
     except BaseException:      # noqa: BLE001  (nothing may keep the job from ending)
         pass
     if comm.size == 1:         # no rank to stop: MPI_Abort of a lone rank ran the C++ exit
@@ -110,21 +110,30 @@ def abort_job(comm, message, code: int = 1):
 
 #: Seconds a rank that left its message to rank 0 waits before it ends the job.
 SILENT_RANK_WAIT = 5.0
+#: Seconds a rank other than 0 waits before it says its error: where rank 0 fails alike (the
+#: same options, the same scene on every rank), rank 0 says it and ends the job first, so
+#: the job says it once; an error of this rank alone is said after that wait.
+ROOT_FIRST_WAIT = 3.0
 #: Whether this rank left an error's message to rank 0 (:func:`report_error`).
 _SILENCED = False
 
 
-def report_error(comm, message: str):
+def report_error(comm, message: str, alone: bool = False):
     """Print ``partpm: error[ on MPI rank j of P]: message`` on standard error, as one write
-    (the lines of ranks that fail at once ran together when the newline was written apart),
-    except on ranks other than 0 for the error that every rank raises alike
+    (the lines of ranks that fail at once ran together when the newline was written apart).
+    Ranks other than 0 first wait :data:`ROOT_FIRST_WAIT` seconds, in which rank 0, failing
+    alike, says it and ends the job; for the error that every rank raises alike
     (:func:`check_ranks`: found by its words, as Mitsuba passes an integrator's error on as a
-    new exception with the same text), so the job says it once."""
+    new exception with the same text) they say nothing, so the job says it once. An error
+    of this rank ``alone`` is said at once."""
     global _SILENCED
     where = "" if comm is None else f" on MPI rank {comm.rank} of {comm.size}"
-    if comm is not None and comm.rank != 0 and EVERY_RANK_FAILS in message:
-        _SILENCED = True
-        return
+    if comm is not None and comm.rank != 0:
+        if EVERY_RANK_FAILS in message:
+            _SILENCED = True
+            return
+        if not alone:
+            time.sleep(ROOT_FIRST_WAIT)
     line = f"partpm: error{where}: {message}\n"
     try:
         sys.stderr.flush()
@@ -215,10 +224,10 @@ def run_as_one_job(comm, argv, run) -> int:
     call)."""
     try:
         first = comm.bcast(list(argv), root=0)
-        if list(argv) != first:
-            raise ValueError(f"the ranks of the MPI job were started with different arguments "
-                             f"(rank 0: {' '.join(first)}; rank {comm.rank}: {' '.join(argv)}): "
-                             f"start every rank with the same command")
+        if list(argv) != first:     # found by this rank alone: said at once
+            abort_job(comm, f"the ranks of the MPI job were started with different arguments "
+                            f"(rank 0: {' '.join(first)}; rank {comm.rank}: {' '.join(argv)}): "
+                            f"start every rank with the same command", 2, alone=True)
         code = run()
     except SystemExit as e:      # argparse has printed its message
         code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
@@ -275,9 +284,24 @@ class Backend:
         return stop
 
     def collect(self, stats: dict) -> dict:
-        """Every process's ``stats`` on the root (for reporting); the root's own is the
-        whole job's."""
+        """Every process's ``stats`` on the root (for reporting), and the whole job's
+        figures in the root's own (:func:`job_stats`)."""
         return stats
+
+    def total(self, value: int) -> int:
+        """``value`` summed over the processes, every process receiving the sum (the
+        photons stored in all maps, where a warning says there were none)."""
+        return value
+
+    def check_same(self, settings: dict):
+        """Refuse a render whose processes disagree on ``settings`` (the film, the samples,
+        the seed, the scene's size): their partial images would not add up to one image."""
+
+    @property
+    def reports(self) -> bool:
+        """Whether this process says what is true of the whole render (the root): the
+        warnings that every process would give alike."""
+        return self.is_root
 
     @property
     def is_root(self) -> bool:
@@ -329,9 +353,42 @@ class MPIBackend(Backend):
         stats.update(rank=self.comm.rank, ranks=None)
         ranks = self.comm.gather(dict(stats), root=0)   # reporting only
         if self.is_root:
-            stats.update(ranks=ranks, photons_stored=sum(r["photons_stored"] for r in ranks),
-                         map_bytes=sum(r["map_bytes"] for r in ranks))
+            stats.update(job_stats(ranks), ranks=ranks)
         return stats
+
+    def total(self, value: int) -> int:
+        return int(self.comm.allreduce(int(value)))
+
+    def check_same(self, settings: dict):
+        every = self.comm.allgather(settings)
+        differ = [key for key in settings if any(s.get(key) != every[0].get(key)
+                                                 for s in every)]
+        if differ:
+            said = "; ".join(f"{key}: " + ", ".join(f"rank {j} {s.get(key)!r}"
+                                                     for j, s in enumerate(every))
+                             for key in differ)
+            raise ValueError(f"the ranks of the MPI job render different things ({said}): "
+                             f"every rank must render the same scene file with the same "
+                             f"film, samples and seed, or their images do not add up")
+
+
+def job_stats(ranks: list) -> dict:
+    """The whole job's figures from every rank's stats: the photons, segments, tree bytes
+    and CPU seconds summed over the ranks, the wall times, waves and peak memory the
+    largest rank's (the slowest rank's times), the maps all of them."""
+    job = {}
+    for key in ranks[0]:
+        values = [r.get(key) for r in ranks]
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+            continue
+        if key.endswith(("photons_stored", "photons_traced")) or key in ("segments",
+                                                                         "map_bytes") \
+                or key.startswith("cpu_"):
+            job[key] = sum(values)
+        elif key.startswith("time_") or key in ("waves", "peak_memory_bytes"):
+            job[key] = max(values)
+    job["maps_owned"] = sorted(m for r in ranks for m in r.get("maps_owned", []))
+    return job
 
 
 def allreduce_arrays(comm, values):

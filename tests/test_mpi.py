@@ -349,3 +349,97 @@ def test_render_prediction_from_one_rank_by_hand():
     assert two["compute"] == pytest.approx(8.0) and two["reduce"] == pytest.approx(1e-3)
     assert predict(work, 4, reduce, 10**6)["compute"] == pytest.approx(10.0)
     assert predict(work, 3, reduce, 10**6)["compute"] == pytest.approx(9.75)
+
+
+@pytest.mark.parametrize("case, said", [
+    ("seed", "the ranks of the MPI job render different things (seed: rank 0 0, rank 1 1)"),
+    ("film", "film size: rank 0 (16, 16), rank 1 (16, 12)")])
+def test_ranks_that_render_different_things_are_refused(case, said):
+    """Ranks whose eye paths differ cannot add up their partial images: another seed on one
+    rank gave a silent blend of two images (65 of 256 pixels off by more than half), another
+    film size a crash inside MPI's reduction ('Message truncated'). Both are now refused
+    before any photon is traced, with what differs."""
+    done = _mpi(2, str(HERE / "mpi_scripts" / "job_checks.py"), case, timeout=120)
+    assert done.returncode != 0
+    assert said in done.stderr, done.stderr[-2000:]
+    assert "passes per rank" not in done.stdout and "Message truncated" not in done.stderr
+
+
+def test_cancel_from_on_pass_stops_every_rank_after_that_pass():
+    """cancel() in on_pass after pass 3 ends the render there on every rank, as locally (the
+    ranks agreed on it only after the next pass before: 4 passes)."""
+    done = _mpi(2, str(HERE / "mpi_scripts" / "job_checks.py"), "cancel", timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    line = next(x for x in done.stdout.splitlines() if x.startswith("passes per rank:"))
+    assert line.split(":")[1].split() == ["3", "3"], line
+
+
+def test_the_stats_top_level_is_the_whole_jobs():
+    """rank 0's stats hold the job's figures: photons traced and stored, segments and CPU
+    seconds summed over the ranks, wall times and peak memory the largest rank's (they were
+    rank 0's own, half the photons traced)."""
+    done = _mpi(2, str(HERE / "mpi_scripts" / "job_checks.py"), "totals", timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = {x.split(":", 1)[0]: x.split(":", 1)[1] for x in done.stdout.splitlines()
+             if x.startswith(("stats:", "ranks:"))}
+    job, ranks = json.loads(lines["stats"]), json.loads(lines["ranks"])
+    assert job["photons_traced"] == 2 * 4000 and job["caustic_photons_traced"] == 2 * 4000
+    for key in ("photons_stored", "caustic_photons_stored", "segments", "map_bytes",
+                "cpu_trace"):
+        assert job[key] == sum(r[key] for r in ranks), key
+    for key in ("time_trace", "time_estimate", "peak_memory_bytes"):
+        assert job[key] == max(r[key] for r in ranks), key
+    assert job["maps_owned"] == [0, 1, 2, 3]
+    assert 0 < ranks[0]["caustic_photons_stored"] < job["caustic_photons_stored"]
+
+
+def test_warnings_of_the_whole_job_are_said_once_and_only_when_true(tmp_path):
+    """Few caustic photons in four maps on four ranks: some ranks store none, but the job
+    does; no rank may say that the caustic maps add nothing (two of four did), and a
+    warning of the scene (here: more sensors than one) is said once, by rank 0."""
+    xml = tmp_path / "two_sensors.xml"
+    src = __import__("mi_partpm").scenes.scene_path("caustic_glass").read_text()
+    start = src.index("<sensor")
+    end = src.index("</sensor>") + len("</sensor>")
+    xml.write_text(src[:end] + src[start:end] + src[end:])
+    done = _mpi(4, "-m", "mi_partpm.cli", "render", str(xml), "--maps", "4", "--photons",
+                "2000", "--caustic-photons", "60", "--seed", "3", "--resolution", "16x16",
+                "--backend", "mpi", "-o", str(tmp_path / "x.exr"),
+                "--stats-json", str(tmp_path / "s.json"), timeout=180)
+    assert done.returncode == 0, done.stderr[-2000:]
+    ranks = json.loads((tmp_path / "s.json").read_text())["ranks"]
+    stored = [r["caustic_photons_stored"] for r in ranks]
+    print("caustic photons stored per rank:", stored)
+    assert 0 in stored and sum(stored) > 0     # the case: a rank without, the job with
+    assert "caustic photon was stored" not in done.stderr, done.stderr
+    assert done.stderr.count("has 2 sensors") == 1, done.stderr
+
+
+def test_backend_mpi_moves_a_scene_files_own_partpm_onto_the_ranks(tmp_path):
+    """--backend mpi says where to run: with a scene file's partpm (and no other integrator
+    option) its props stay (it rendered the command line's defaults, 8 maps of 10^5
+    photons, with a warning); a scene file's pm is refused with a clear message."""
+    body = ('<sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/>'
+            '<integer name="height" value="8"/></film></sensor><shape type="sphere"><emitter '
+            'type="area"/></shape><shape type="rectangle"><transform name="to_world">'
+            '<translate z="-3"/><scale value="5"/></transform></shape></scene>')
+    xml = tmp_path / "own.xml"
+    xml.write_text('<scene version="3.0.0"><integrator type="partpm"><integer '
+                   'name="photon_count" value="3000"/><integer name="map_count" value="3"/>'
+                   '</integrator>' + body)
+    done = _mpi(2, "-m", "mi_partpm.cli", "render", str(xml), "--backend", "mpi", "-o",
+                str(tmp_path / "s.exr"), "--stats-json", str(tmp_path / "s.json"),
+                timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    stats = json.loads((tmp_path / "s.json").read_text())
+    assert stats["map_count"] == 3 and stats["photons_traced"] == 3000
+    assert "replaces" not in done.stderr
+    pm = tmp_path / "pm.xml"
+    pm.write_text('<scene version="3.0.0"><integrator type="pm"><integer name="photon_count" '
+                  'value="3000"/></integrator>' + body)
+    done = _mpi(2, "-m", "mi_partpm.cli", "render", str(pm), "--backend", "mpi", "-o",
+                str(tmp_path / "p.exr"), timeout=120)
+    assert done.returncode == 2
+    assert "--backend mpi runs partpm's maps on the ranks; the scene file's integrator is " \
+        "pm" in done.stderr
+    assert done.stderr.count("partpm: error") == 1, done.stderr

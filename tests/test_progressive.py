@@ -325,7 +325,7 @@ def test_cli_renders_a_scene_file_with_its_own_integrator(tmp_path, capsys, capl
     assert main(argv) == 0
     figures = json.loads(stats.read_text())
     assert (figures["photons_emitted"], figures["map_count"], figures["passes"]) == (3000, 3, 2)
-    assert figures["integrator"] == "PartPMIntegrator"
+    assert figures["integrator"] == "partpm"     # the plugin name, as --integrator says it
     with caplog.at_level("WARNING", logger="mi_partpm"):
         assert main([*argv, "--maps", "2"]) == 0
     figures = json.loads(stats.read_text())

@@ -58,11 +58,13 @@ def main(argv=None) -> int:
 
 def _main(argv, comm=None) -> int:
     """The command of ``argv``; ``comm``: the MPI job it is a rank of (its errors say which
-    rank, and ranks other than 0 log only warnings)."""
+    rank; ranks other than 0 log only errors: every rank renders the same scene with the
+    same options, so their warnings are rank 0's, which speaks for the job)."""
     args = build_parser().parse_args(argv)
     rank = comm.rank if comm is not None else 0
-    logging.basicConfig(level=logging.WARNING if getattr(args, "quiet", False) or rank
-                        else logging.INFO, format="%(message)s", stream=sys.stderr)
+    logging.basicConfig(level=logging.ERROR if rank else logging.WARNING
+                        if getattr(args, "quiet", False) else logging.INFO,
+                        format="%(message)s", stream=sys.stderr)
     try:
         return COMMANDS[args.command](args)
     except BrokenPipeError:

@@ -196,7 +196,9 @@ def run_render(args) -> int:
         return 0
     if not args.output:
         raise UsageError("render needs -o OUT.exr")
-    given = _given_options(args)
+    # --backend says where the integrator runs, not what it is: alone, it moves a scene
+    # file's own partpm onto the ranks.
+    given = [o for o in _given_options(args) if o != "--backend"]
     from_file = args.scene is not None and scene_file_integrator(args.scene)
     if from_file and given:
         log.warning("the command line's integrator (%s) replaces the <integrator> of %s",
@@ -218,9 +220,20 @@ def run_render(args) -> int:
     own = integrator is None
     if own:                             # the scene file's own, as Mitsuba would render it
         integrator = scene.integrator()
-        # A Python plugin's class_name() is its base class's ("SamplingIntegrator").
-        args.integrator = type(integrator).__name__ if not type(integrator).__module__ \
-            .startswith("mitsuba") else integrator.class_name()
+        # A Python plugin's class_name() is its base class's ("SamplingIntegrator"): ours
+        # are named by their plugin names.
+        from ..plugins import PLUGINS
+        ours = {class_name: name for name, (_, class_name) in PLUGINS.items()}
+        args.integrator = ours.get(type(integrator).__name__, type(integrator).__name__) \
+            if not type(integrator).__module__.startswith("mitsuba") \
+            else integrator.class_name()
+        if args.backend != "local":
+            if not hasattr(integrator, "run_on"):
+                raise UsageError(f"--backend {args.backend} runs partpm's maps on the ranks; "
+                                 f"the scene file's integrator is {args.integrator}: render "
+                                 f"the command line's partpm (--integrator partpm and its "
+                                 f"options) or give the scene file a partpm")
+            integrator.run_on(args.backend)
         if args.checkpoint_every and not (getattr(integrator, "passes", 1) > 1 and
                                           hasattr(integrator, "on_pass")):
             raise UsageError(f"--checkpoint-every writes the image between passes: the scene "
@@ -273,7 +286,7 @@ def _check_ranks(integrator, name: str):
             raise UsageError(f"this process is one of the {ranks} ranks of an MPI job "
                              f"(mpiexec), but the integrator ({name}) renders locally: every "
                              f"rank would render the whole image and write it; pass --backend "
-                             f"mpi (partpm), or give the scene file's partpm backend = mpi")
+                             f"mpi (partpm: the scene file's own, or the command line's)")
     elif backend.comm.size == 1:
         log.warning("--backend mpi in an MPI job of one rank: start it with mpiexec -n P to "
                     "render on P ranks")
@@ -420,7 +433,8 @@ def _summary(stats: dict, seconds: dict, out: Path) -> str:
             lines.append(f"{phase:8} {stats[f'time_{phase}']:8.2f} s")
     lines.append(f"render   {seconds['render']:8.2f} s (all phases)")
     if "peak_memory_bytes" in stats:
-        lines.append(f"memory   {stats['peak_memory_bytes'] / 1e9:8.2f} GB peak (this process)")
+        whose = "the largest rank's" if stats.get("ranks") else "this process"
+        lines.append(f"memory   {stats['peak_memory_bytes'] / 1e9:8.2f} GB peak ({whose})")
     if stats:
         if "k" in stats:
             search = f"k = {stats['k']}, mean kNN radius {stats['mean_knn_radius']:.4g}"
