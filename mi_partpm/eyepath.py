@@ -27,6 +27,7 @@ import numpy as np
 
 from .kdtree import morton_order
 from .props import UNLIMITED_DEPTH, segment_limit
+from .scenes import surface_shapes
 
 log = logging.getLogger("mi_partpm")
 
@@ -100,6 +101,20 @@ def values_agree(reference: np.ndarray, others, tolerance: float = 1e-3) -> bool
                                for o in others)
 
 
+def _past_area_emitters(scene, ray, si, active):
+    """With ``hide_emitters``, what a camera ray sees past the area emitters on its way, as
+    Mitsuba's path (its ``skip_area_emitters``): the surface behind a visible light, or a
+    miss (black, alpha 0) where nothing is behind it. It stopped at the light before: black,
+    alpha 0 where path showed the lit wall behind it. One more intersection per light passed
+    on the rays that meet one (a host loop: a few rays pass several)."""
+    on = active & si.is_valid() & (si.emitter(scene, active) != None)   # noqa: E711
+    while bool(dr.any(on)[0] if dr.width(on) else False):
+        behind = scene.ray_intersect(si.spawn_ray(ray.d), mi.RayFlags.All, False, on)
+        si[on] = behind
+        on &= behind.is_valid() & (behind.emitter(scene, on) != None)   # noqa: E711
+    return si
+
+
 def registry_id(bsdf) -> int:
     """A BSDF's registry id: what ``dr.reinterpret_array(mi.UInt32, bsdf_ptr)`` gives per
     lane, and the index of per-BSDF tables such as :func:`registry_table`'s."""
@@ -120,7 +135,7 @@ def unsplit_bsdfs(scene: mi.Scene) -> mi.UInt32:
     ``glossy = "trace"`` then treats as ``"map"`` does (a visible point for every lobe), with
     a warning; 0 elsewhere. Ids beyond the table are BSDFs the shapes do not list: 0."""
     found = {}
-    for shape in scene.shapes():
+    for shape, _ in surface_shapes(scene):
         bsdf = shape.bsdf()
         if bsdf is None or not (int(bsdf.flags()) & int(mi.BSDFFlags.Diffuse)
                                 and int(bsdf.flags()) & int(mi.BSDFFlags.Glossy)):
@@ -305,6 +320,8 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         # Camera rays are coherent, as in Mitsuba's path (where two surfaces coincide,
         # Embree's coherent traversal may report the other one: path's choice is the user's)
         si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0 and prev is None, active)
+        if depth == 0 and hide_emitters:
+            si = _past_area_emitters(scene, ray, si, active)
         if depth == 0:
             # As Mitsuba's path: a ray that sees a visible environment is valid too (alpha 1).
             valid = active & (si.is_valid() | (not hide_emitters and
@@ -313,10 +330,7 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         emitter = si.emitter(scene, active)
         show = active & (emitter != None)   # noqa: E711
         if depth == 0 and hide_emitters:
-            # As Mitsuba's path: a camera ray that hits an emitter is a miss (black, alpha
-            # 0), not a surface that reflects light (which it rendered, alpha 1).
-            valid &= ~show
-            active &= ~show
+            # None left (past_area_emitters): the camera sees no emitter.
             show = mi.Bool(False) & show
         mis = _emission_mis(scene, prev_si, prev_pdf, si, show) if trace else 1.0
         L = _add_light(L, dr.select(show, beta * emitter.eval(si, show) * mis, 0.0) * emission,

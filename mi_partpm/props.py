@@ -105,7 +105,11 @@ def check_float(name: str, value, low: Optional[float] = None, high: Optional[fl
 
 def check_bool(name: str, value) -> bool:
     if not isinstance(value, bool):
-        raise ValueError(f"{name} must be true or false, got {value!r}")
+        # A scene file's <string name=... value="true"/> reads as the string 'true': say
+        # which tag gives a boolean.
+        hint = f' (a boolean: <boolean name="{name}" value="{value}"/> in a scene file)' \
+            if isinstance(value, str) and value.lower() in ("true", "false") else ""
+        raise ValueError(f"{name} must be true or false{hint}, got {value!r}")
     return value
 
 

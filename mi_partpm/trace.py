@@ -602,6 +602,22 @@ def shading_correction(si, wi):
     return dr.select(cos_g > 1e-3, cos_s / dr.select(cos_g > 1e-3, cos_g, 1.0), 1.0)
 
 
+def adjoint_correction(si, wi, wo):
+    """The adjoint BSDF's correction for shading normals at a photon's bounce (Veach 1997,
+    section 5.3; as Mitsuba's light tracer ``ptracer`` applies it): |wi . n_s| |wo . n_g| /
+    (|wi . n_g| |wo . n_s|), with ``wi`` towards the light and ``wo`` the sampled direction,
+    and 0 where either lies on different sides of the geometric and the shading surface (a
+    light leak). Exactly 1 where the shading normal is the geometric one. Without it, on a
+    box with smooth vertex normals the light that bounced off it came out up to 1.18 of
+    path's (found by a QA helper); Mitsuba gives smooth normals to every OBJ and PLY mesh
+    without normals of its own unless ``face_normals`` is set."""
+    wi_g, wo_g = dr.dot(wi, si.n), dr.dot(wo, si.n)
+    wi_s, wo_s = dr.dot(wi, si.sh_frame.n), dr.dot(wo, si.sh_frame.n)
+    factor = dr.abs(wi_s * wo_g) / dr.abs(wi_g * wo_s)
+    leak = (wi_g * wi_s <= 0) | (wo_g * wo_s <= 0)
+    return dr.select(leak | ~dr.isfinite(factor), 0.0, factor)
+
+
 @dr.syntax
 def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=None,
                  too_deep=None):
@@ -710,8 +726,9 @@ def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=No
         bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(active),
                                       mi.Point2f(rng.next_float32(active),
                                                  rng.next_float32(active)), active)
-        ray = si.spawn_ray(si.to_world(bs.wo))
-        power *= bsdf_weight
+        wo = si.to_world(bs.wo)
+        power *= bsdf_weight * adjoint_correction(si, -ray.d, wo)
+        ray = si.spawn_ray(wo)
         # The lobes a caustic path may bounce on before the surface it is stored on; the path
         # is no caustic one after that surface, whichever of its lobes it left by (a plastic's
         # coat), since its caustic photon was stored there; with ``past_landings`` it stays

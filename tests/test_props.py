@@ -44,6 +44,11 @@ from mi_partpm.trace import map_seeds, map_sizes
                       r"9\.223e\+18 \(Mitsuba holds an integer beyond 64 bits as a float\)"),
     ({"direct": "both"}, r"direct must be one of 'photons', 'nee', got 'both'"),
     ({"hide_emitters": 1}, r"hide_emitters must be true or false, got 1"),
+    # A scene file's <string> for a boolean: the message says which tag gives one (it
+    # read "must be true or false, got 'true'").
+    ({"hide_emitters": "true"}, r'hide_emitters must be true or false \(a boolean: <boolean '
+                                r'name="hide_emitters" value="true"/> in a scene file\), '
+                                r"got 'true'"),
     ({"passes": 0}, r"passes must be an integer >= 1, got 0"),
     ({"alpha": 1.0}, r"alpha must be a finite number in \(0.0, 1.0\), got 1.0"),
     ({"alpha": 0.0}, r"alpha must be .* got 0.0"),
