@@ -61,6 +61,7 @@ sets ``costs = "fitted"`` may not also set the ``cycles_per_*`` keys (they would
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, fields, replace
 
 from .networks import TOPOLOGIES
@@ -75,23 +76,38 @@ COST_SOURCES = ("assumed", "fitted")
 CYCLE_KEYS = ("cycles_per_node", "cycles_per_test", "cycles_per_accumulate", "cycles_per_map")
 
 
+#: The largest value of any number of a configuration, and the least of one that must be
+#: above 0 (bytes, cycles, hertz, picojoules, watts): beyond them the model's products of
+#: counts and costs overflow 64-bit integers or float64 (2^62 bytes of SRAM, a clock of
+#: 1e-300 Hz), and no hardware is near them.
+LARGEST = 1e15
+LEAST_POSITIVE = 1e-6
+
+
 def _whole_ints(obj):
-    """The integer fields of ``obj`` given as whole floats (a TOML ``2e6`` or ``2.0``), checked
-    by ``_check_number(integer=True)``, become ints, as the model's counts and indices need."""
+    """The integer fields of ``obj`` given as whole floats (a TOML ``2e6`` or ``2.0``) or as
+    NumPy integers, checked by ``_check_number(integer=True)``, become ints, as the model's
+    counts and indices need; NumPy floats become floats."""
     for f in fields(obj):
         value = getattr(obj, f.name)
-        if f.type == "int" and isinstance(value, float) and value.is_integer():
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            continue
+        if f.type == "int" and float(value).is_integer():
             object.__setattr__(obj, f.name, int(value))
+        elif f.type == "float" and type(value) is not float:
+            object.__setattr__(obj, f.name, float(value))
 
 
 def _check_number(owner, name, value, low=0.0, low_open=True, integer=False):
+    """``value`` must be a real number (an integer where ``integer``) from ``low`` (above it,
+    by :data:`LEAST_POSITIVE` or 1 for an integer, where ``low_open``) to :data:`LARGEST`."""
     what = f"{owner}.{name}" if owner else name
-    kind = "an integer" if integer else "a finite number"
-    bound = f"{'>' if low_open else '>='} {low:g}"
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or \
-            (integer and not float(value).is_integer()):
-        raise ValueError(f"{what} must be {kind} {bound}, got {value!r}")
-    if not math.isfinite(value) or (value <= low if low_open else value < low):
+    kind = "an integer" if integer else "a number"
+    least = (low + (1 if integer else LEAST_POSITIVE)) if low_open else low
+    bound = f"in [{least:g}, {LARGEST:g}]"
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or \
+            not math.isfinite(value) or (integer and not float(value).is_integer()) or \
+            not least <= value <= LARGEST:
         raise ValueError(f"{what} must be {kind} {bound}, got {value!r}")
 
 
@@ -146,6 +162,7 @@ class GatherConfig:
         _check_number("gather", "link_bytes_per_cycle", self.link_bytes_per_cycle)
         _check_number("gather", "adder_latency_cycles", self.adder_latency_cycles, 0,
                       low_open=False)
+        _whole_ints(self)
 
 
 @dataclass(frozen=True)
@@ -165,6 +182,7 @@ class EnergyConfig:
     def __post_init__(self):
         for f in fields(self):
             _check_number("energy", f.name, getattr(self, f.name), 0, low_open=False)
+        _whole_ints(self)
 
 
 @dataclass(frozen=True)

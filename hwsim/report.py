@@ -346,8 +346,12 @@ def format_report(result) -> str:
     for shared DRAM, the calibration and the sensitivity sweep. Every table row and line gives
     the frame's DRAM traffic (MB read per frame, over all PEs)."""
     n = result["largest_n"]["map_count"]
-    lines = ([_format_pe_costs(result["pe_costs"])] if result.get("pe_costs") else []) + \
-        _format_rows(result["rows"]) + _format_sweep(result, n)
+    head = []
+    if result.get("pe_costs"):
+        head.append(_format_pe_costs(result["pe_costs"]))
+    if result.get("config"):
+        head.append(_format_gather(result["config"]))
+    lines = head + _format_rows(result["rows"]) + _format_sweep(result, n)
     if result.get("contention"):
         lines.append(_format_contention(result, n))
     cal = result.get("calibration")
@@ -412,6 +416,16 @@ def _format_contention(result, n) -> str:
           f"{traffic[0]:.1f}-{traffic[-1]:.1f}")
     return (f"every map in DRAM (n = {n}, {mb} MB from DRAM per frame), DRAM channels "
             f"{'; '.join(parts)}")
+
+
+def _format_gather(config) -> str:
+    """The gather network and schedule the per-n table's speedups and gather share are
+    of (the config's)."""
+    g = config["gather"]
+    pipelined = ", pipelined" if g["pipelined"] and g["topology"] != "bus" else ""
+    return (f"gather in the per-n table: {g['topology']}{pipelined}, "
+            f"{g['link_bytes_per_cycle']:g} bytes/cycle per link, {g['hop_latency_cycles']:g} "
+            f"cycles per hop, schedule '{config['gather_schedule']}'")
 
 
 def _format_pe_costs(c) -> str:

@@ -126,6 +126,8 @@ class PhotonMapper(mi.SamplingIntegrator):
 
     #: Whether the plugin takes ``radius`` / ``radius_fraction`` (a fixed search radius).
     fixed_radius = True
+    #: Whether the plugin takes ``passes`` and ``time_limit`` (progressive photon mapping).
+    progressive = True
 
     def __init__(self, props=None):
         if props is not None and "hide_emitters" in props:
@@ -134,10 +136,12 @@ class PhotonMapper(mi.SamplingIntegrator):
         super().__init__(props if props is not None else mi.Properties())
         if props is not None and "samples_per_pass" in props:
             # Mitsuba's base class takes it (path splits its samples into passes by it).
+            progressive = "; its passes are photon passes (passes, time_limit)" \
+                if self.progressive else ""
             log.warning("samples_per_pass = %s is not used: %s traces every sample of a pass "
                         "at once (its memory guard says when they would not fit, and what "
-                        "to lower); its passes are photon passes (passes, time_limit)",
-                        props["samples_per_pass"], type(self).__name__)
+                        "to lower)%s", props["samples_per_pass"], type(self).__name__,
+                        progressive)
         self.radius = None
         self._layers = []
         self._stored_per_emitted = {}

@@ -66,6 +66,7 @@ class PMIntegrator(PhotonMapper):
     """
 
     fixed_radius = False
+    progressive = False
 
     def read_estimator_props(self, props):
         n = self.params.photon_count

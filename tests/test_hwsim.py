@@ -260,21 +260,41 @@ def test_energy_by_hand():
 
 
 @pytest.mark.parametrize("changes, message", [
-    ({"pe_count": 0}, r"pe_count must be an integer >= 1, got 0"),
-    ({"clock_hz": -1}, r"clock_hz must be a finite number > 0, got -1"),
+    ({"pe_count": 0}, r"pe_count must be an integer in \[1, 1e\+15\], got 0"),
+    ({"clock_hz": -1}, r"clock_hz must be a number in \[1e-06, 1e\+15\], got -1"),
     ({"gather_schedule": "never"}, r"gather_schedule must be one of after, tiles"),
     ({"gather": {"topology": "mesh"}}, r"gather.topology must be one of bus, tree, ring"),
     ({"memory": {"dram_bytes_per_cycle": 0}}, r"memory.dram_bytes_per_cycle must be"),
-    ({"cycles_per_node": float("nan")}, r"cycles_per_node must be a finite number"),
+    ({"cycles_per_node": float("nan")}, r"cycles_per_node must be a number in \[0, 1e\+15\], got nan"),
     ({"cycles_per_node": 0, "cycles_per_test": 0, "cycles_per_accumulate": 0},
      r"cycles_per_node, cycles_per_test and cycles_per_accumulate are all 0: a query would "
      r"take no time"),
-    ({"memory": {"dram_channels": -1}}, r"memory.dram_channels must be an integer >= 0"),
-    ({"energy": {"pj_per_node": -1}}, r"energy.pj_per_node must be a finite number >= 0"),
+    ({"memory": {"dram_channels": -1}},
+     r"memory.dram_channels must be an integer in \[0, 1e\+15\]"),
+    ({"energy": {"pj_per_node": -1}}, r"energy.pj_per_node must be a number in \[0, 1e\+15\]"),
+    # Beyond these bounds the model overflowed: a traceback from 2^63 - 1 bytes of SRAM, a
+    # report.json of Infinity from a clock of 1e-300 Hz.
+    ({"memory": {"sram_bytes": 2 ** 63 - 1}}, r"memory.sram_bytes must be an integer in "
+                                              r"\[0, 1e\+15\], got 9223372036854775807"),
+    ({"clock_hz": 1e-300}, r"clock_hz must be a number in \[1e-06, 1e\+15\], got 1e-300"),
+    ({"gather": {"hop_latency_cycles": 1e300}}, r"gather.hop_latency_cycles must be a number "
+                                                 r"in \[0, 1e\+15\]"),
+    ({"memory": {"dram_burst_bytes": 0}}, r"memory.dram_burst_bytes must be an integer in "
+                                          r"\[1, 1e\+15\], got 0"),
 ])
 def test_invalid_configs_name_the_field(changes, message):
     with pytest.raises(ValueError, match=message):
         load_config(**changes)
+
+
+def test_numpy_numbers_configure_as_python_ones():
+    """A sweep over NumPy integers (``2 ** np.arange(4)``) configures as Python ints would
+    (np.int64(4) was refused as not an integer), and the fields hold Python numbers."""
+    import numpy as np
+    for p in 2 ** np.arange(4):
+        cfg = load_config(pe_count=p, clock_hz=np.float32(1e8), memory={"sram_bytes": p * 1024})
+        assert cfg.pe_count == int(p) and type(cfg.pe_count) is int
+        assert type(cfg.clock_hz) is float and type(cfg.memory.sram_bytes) is int
 
 
 @pytest.mark.parametrize("changes, message", [
@@ -673,6 +693,10 @@ def test_fitted_costs_feed_the_pe_model_by_the_stated_rule(tmp_path):
                                    "cycles_per_test": 3.0, "cycles_per_found": 2.0,
                                    "cycles_per_map": 0.0}
     assert any(row["constant"] == "cycles_per_node" for row in assumed["sensitivity"])
+    # The per-n table's gather is named (its speedups are of the config's network).
+    bus = run_report(folder, load_config(None, gather={"topology": "bus"}), tmp_path / "out3")
+    assert "gather in the per-n table: bus, 8 bytes/cycle per link" in format_report(bus)
+    assert "gather in the per-n table: tree, pipelined" in format_report(assumed)
 
 
 def synthetic_family():
@@ -689,7 +713,7 @@ def synthetic_family():
     ('pe = 3\n', "pe must be a table"),
     ('cycles_per_node = 5\n[pe]\ncosts = "fitted"\nfitted_costs = "fitted_costs.toml"\n',
      "leave out cycles_per_node"),
-    ('cycles_per_map = -1\n', "cycles_per_map must be a finite number >= 0"),
+    ('cycles_per_map = -1\n', "cycles_per_map must be a number in \\[0, 1e\\+15\\]"),
 ])
 def test_invalid_pe_costs_name_the_key(tmp_path, toml, message):
     _costs_file(tmp_path)
@@ -924,8 +948,8 @@ def test_integer_keys_given_as_whole_floats_are_integers(tmp_path):
     w = workload([[4, 2], [3, 1]], [[8, 4], [6, 2]], [[2, 1], [1, 0]])
     assert simulate(cfg.with_(pe_count=2.0), w).frame_cycles > 0   # ran: no TypeError
     path.write_text("[memory]\ndram_channels = 2.5\n")
-    with pytest.raises(ValueError, match=r"memory.dram_channels must be an integer >= 0, "
-                                         r"got 2.5"):
+    with pytest.raises(ValueError, match=r"memory.dram_channels must be an integer in \[0, "
+                                         r"1e\+15\], got 2.5"):
         load_config(path)
 
 

@@ -303,6 +303,12 @@ def _call(kind, forest, q, **kw):
     (lambda pts: build_forest(pts, np.full(99, 2**32), 2), r"map_ids must be integers >= 0, "
                                                            r"< map_count = 2; got values"),
     (lambda pts: build_forest(pts, np.full(99, 0.5), 2), r"map_ids must be integers"),
+    # Beyond 32 bits without map_count: the bound is the forest's (it said "integers >= 0,
+    # got values from 1099511627776").
+    (lambda pts: build_forest(pts, np.full(99, 2**40)), r"map_ids must be integers in "
+                                                        r"\[0, 1048576\) \(a forest holds at "
+                                                        r"most 1048576 maps\); got values from "
+                                                        r"1099511627776"),
     (lambda pts: build_forest(pts, payload=mi.UInt32([1, 2, 3])),
      r"payload has 3 entries for 99 points"),
     (lambda pts: knn_neighbours(build_forest(pts), pts[:5].T, 2),

@@ -332,6 +332,18 @@ def test_cli_renders_a_scene_file_with_its_own_integrator(tmp_path, capsys, capl
     assert (figures["photons_emitted"], figures["map_count"], figures["passes"]) == \
         (100_000, 2, 1)
     assert "the command line's integrator (--maps) replaces the <integrator>" in caplog.text
+    # An option of the file's own pm (--k) without --integrator: the command line's partpm
+    # refuses it, and the message says how to keep pm (it read "--k applies to
+    # --integrator pm only", of a file whose integrator is pm).
+    pm = tmp_path / "pm.xml"
+    pm.write_text(xml.read_text().replace('<integrator type="partpm">',
+                                          '<integrator type="pm">').replace(
+        '<integer name="map_count" value="3"/>', "").replace(
+        '<integer name="passes" value="2"/>', ""))
+    assert main(["render", str(pm), "--k", "10", "-o", str(tmp_path / "p.exr")]) == 2
+    assert f'--k applies to --integrator pm only (the command line\'s integrator, partpm ' \
+        f'unless --integrator says otherwise, replaces the <integrator type="pm"> of {pm}: ' \
+        f'add --integrator pm)' in capsys.readouterr().err
 
 
 def test_the_final_radius_is_reported_after_passes_only():

@@ -11,6 +11,7 @@ import signal
 import threading
 import xml.etree.ElementTree as ElementTree
 from pathlib import Path
+from typing import Optional
 
 from .common import UsageError, check_writable, interrupted, last_line, setup, write_atomic
 
@@ -161,17 +162,19 @@ def _given_options(args) -> list:
     return given + (["--backend"] if args.backend != "local" else [])
 
 
-def scene_file_integrator(scene: str) -> bool:
-    """Whether ``scene`` is a scene file with an ``<integrator>`` of its own (at the top
-    level: Mitsuba's default when it has none is ``path``, which cannot be told apart)."""
+def scene_file_integrator(scene: str) -> Optional[str]:
+    """The type of ``scene``'s own ``<integrator>`` when it is a scene file with one (at the
+    top level: Mitsuba's default when it has none is ``path``, which cannot be told apart),
+    else None."""
     from ..scenes import scene_names, scene_path
     if scene in scene_names():                # the built-in scenes leave the integrator to us
-        return False
+        return None
     try:
         root = ElementTree.parse(scene_path(scene)).getroot()
     except (OSError, ValueError, ElementTree.ParseError):
-        return False
-    return any(child.tag == "integrator" for child in root)
+        return None
+    return next((child.get("type", "?") for child in root if child.tag == "integrator"),
+                None)
 
 
 def _output_path(args) -> Path:
@@ -205,10 +208,20 @@ def run_render(args) -> int:
                     ", ".join(given), args.scene)
     integrator = None
     if not from_file or given:
+        named = args.integrator is not None
         try:
             integrator = mi.load_dict(integrator_desc(args))
         except (ValueError, RuntimeError) as e:
             raise UsageError(in_options(last_line(e))) from None
+        except UsageError as e:
+            if from_file and not named and from_file != args.integrator:
+                # An option of the file's own integrator (--k for its pm) given without
+                # --integrator: the command line's partpm refuses it.
+                raise UsageError(f"{e} (the command line's integrator, {args.integrator} "
+                                 f"unless --integrator says otherwise, replaces the "
+                                 f"<integrator type=\"{from_file}\"> of {args.scene}: add "
+                                 f"--integrator {from_file})") from None
+            raise
     out = _output_path(args)           # after the options' checks: it makes the folders
     clock = Stopwatch()
     try:

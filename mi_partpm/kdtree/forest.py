@@ -773,8 +773,10 @@ def build_forest(points, map_ids=None, map_count: int | None = None,
     elif isinstance(map_ids, mi.UInt32):
         ids = map_ids
     else:
-        bound = "" if map_count is None else f", < map_count = {map_count}"
-        ids = _host_uint32(map_ids, "map_ids", f"integers >= 0{bound}", 0xFFFFFFFE)
+        # The bound the ids may break: map_count's, or the most maps a forest holds.
+        bound = f">= 0, < map_count = {map_count}" if map_count is not None else \
+            f"in [0, {MAX_MAPS}) (a forest holds at most {MAX_MAPS} maps)"
+        ids = _host_uint32(map_ids, "map_ids", f"integers {bound}", 0xFFFFFFFE)
     if map_count is None:
         map_count = int(dr.max(ids)[0]) + 1 if n_points and dr.width(ids) == n_points else 1
         if map_count > MAX_MAPS:
