@@ -55,18 +55,23 @@ def comm_world():
 
 
 def share_cores(comm) -> int:
-    """Give each rank its share of this machine's cores for Dr.Jit's thread pool.
+    """Give each rank its share of this machine's cores for Dr.Jit's thread pool, and of its
+    free memory for the memory guard (:func:`~mi_partpm.memory.share_memory`).
 
     Ranks on the same node would otherwise each start one thread per core. Never fewer than
     2: with a pool of one thread (Dr.Jit 1.5), writing a ``mi.Bitmap`` deadlocks. Returns the
     thread count set (left alone when ``DRJIT_NUM_THREADS`` is set).
     """
     from mpi4py import MPI
+
+    from .memory import share_memory
+    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
+    here = node.size
+    node.Free()
+    share_memory(here)          # and its share of the free memory
     if os.environ.get("DRJIT_NUM_THREADS"):
         return dr.thread_count()
-    node = comm.Split_type(MPI.COMM_TYPE_SHARED)
-    threads = max(2, (os.cpu_count() or 1) // node.size)
-    node.Free()
+    threads = max(2, (os.cpu_count() or 1) // here)
     dr.set_thread_count(threads)
     return threads
 

@@ -21,7 +21,7 @@ import sys
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
-__all__ = ["available_bytes", "peak_rss_bytes", "MemoryEstimate", "estimate_render",
+__all__ = ["available_bytes", "share_memory", "peak_rss_bytes", "MemoryEstimate", "estimate_render",
            "check_fits", "plan_waves", "wave_budget", "MemoryGuardError", "TRACE_BATCH",
            "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES", "EYE_BYTES_PER_SAMPLE",
            "ASSUMED_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES"]
@@ -74,9 +74,23 @@ def _proc_bytes(path: str, key: str) -> Optional[int]:
     return None
 
 
+#: Processes of one job that share this machine's memory (the MPI ranks on this node:
+#: :func:`share_memory`); each plans with its share of the free memory.
+_SHARERS = 1
+
+
+def share_memory(processes: int):
+    """Plan every render of this process with 1 / ``processes`` of the machine's free memory
+    (the MPI backend: P ranks on one node planned P times what was free before)."""
+    global _SHARERS
+    _SHARERS = max(1, int(processes))
+
+
 def available_bytes() -> Optional[int]:
-    """Free memory (``MemAvailable``, or ``PARTPM_MEMORY_LIMIT`` where it is set: a
-    ValueError where that is not a number >= 1), or None where it cannot be read."""
+    """Free memory for this process (``MemAvailable``, divided among the ranks of an MPI job
+    on this machine (:func:`share_memory`), or ``PARTPM_MEMORY_LIMIT`` where it is set, the
+    free memory of each process: a ValueError where that is not a number >= 1), or None
+    where it cannot be read."""
     override = os.environ.get("PARTPM_MEMORY_LIMIT")
     if override:
         try:
@@ -87,7 +101,8 @@ def available_bytes() -> Optional[int]:
             raise ValueError(f"PARTPM_MEMORY_LIMIT (the free memory to assume, in bytes) "
                              f"must be a number >= 1, e.g. 8e9; got {override!r}")
         return int(value)
-    return _proc_bytes("/proc/meminfo", "MemAvailable")
+    free = _proc_bytes("/proc/meminfo", "MemAvailable")
+    return None if free is None else free // _SHARERS
 
 
 def peak_rss_bytes() -> int:
@@ -180,15 +195,23 @@ def check_fits(estimate: MemoryEstimate, what: str = "this render"):
         share = max(free * 0.9 / max(estimate.eye, 1), 0.0)
         raise MemoryGuardError(
             f"the eye pass (the camera's samples) alone needs about "
-            f"{size_text(estimate.eye)}, but only {size_text(free)} are free: lower the "
+            f"{size_text(estimate.eye)}, but only {size_text(free)} are free"
+            f"{_share_text()}: lower the "
             f"resolution or spp (to about {share:.2g} of the samples per image here); fewer "
             f"photons would not help (their maps take {size_text(estimate.photon_maps)})")
     fraction = (free - estimate.eye) / max(estimate.photon_maps, 1)
     raise MemoryGuardError(
-        f"{what} needs about {estimate.describe()}, but only {size_text(free)} are free: "
+        f"{what} needs about {estimate.describe()}, but only {size_text(free)} are free"
+        f"{_share_text()}: "
         f"lower photon_count (to about {int(estimate.photons * fraction * 0.9):,} per wave "
         f"here), raise map_count (smaller maps make smaller waves), or lower max_depth, or "
         f"the resolution / spp (the eye pass takes {size_text(estimate.eye)})")
+
+
+def _share_text() -> str:
+    return "" if _SHARERS == 1 or os.environ.get("PARTPM_MEMORY_LIMIT") else \
+        f" (this process's share: the machine's free memory over the {_SHARERS} MPI ranks " \
+        f"on it)"
 
 
 def wave_budget(eye: int, limit: Optional[int] = None) -> Optional[int]:

@@ -113,3 +113,26 @@ def test_many_small_maps_fit_where_one_large_map_does_not(monkeypatch):
     integrator = mi.load_dict({"type": "partpm", "photon_count": 2_000_000, "map_count": 64})
     img = render(scene, integrator)
     assert integrator.stats["waves"] > 1 and img.mean() > 0
+
+
+def test_mpi_ranks_on_one_machine_share_its_free_memory(monkeypatch):
+    """P ranks of an MPI job on one machine each planned their waves and checked their
+    render against all of its free memory (P times what was there); each now has its share,
+    and the guard's message says so. PARTPM_MEMORY_LIMIT stays each process's own."""
+    from mi_partpm import memory
+    monkeypatch.delenv("PARTPM_MEMORY_LIMIT", raising=False)
+    whole = memory.available_bytes()
+    if whole is None:
+        pytest.skip("no /proc/meminfo here: the free memory cannot be read")
+    try:
+        memory.share_memory(4)
+        assert abs(memory.available_bytes() - whole / 4) < 0.05 * whole   # it moves a little
+        estimate = memory.estimate_render(10**12, 8, 16, 16, 1)
+        with pytest.raises(memory.MemoryGuardError, match=r"are free \(this process's share: "
+                                                          r"the machine's free memory over "
+                                                          r"the 4 MPI ranks on it\)"):
+            memory.check_fits(estimate)
+        monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "8e9")
+        assert memory.available_bytes() == 8_000_000_000
+    finally:
+        memory.share_memory(1)
