@@ -27,7 +27,7 @@ from pathlib import Path
 import drjit as dr
 import numpy as np
 
-__all__ = ["launcher_ranks", "run_as_one_job", "abort_job", "report_error", "interrupted",
+__all__ = ["launcher_ranks", "launcher_rank", "run_as_one_job", "abort_job", "report_error", "interrupted",
            "Backend", "LocalBackend", "MPIBackend", "make_backend", "BACKENDS", "comm_world",
            "owned_maps", "check_ranks", "allreduce_arrays", "abort_on_error",
            "share_cores", "find_mpiexec", "MPIUnavailable", "job_stats"]
@@ -207,8 +207,19 @@ def abort_on_error(comm, describe=None):
 
 
 #: Variables that MPI launchers set in every rank's environment, with the job's rank count
-#: (MPICH's and Intel MPI's Hydra, Open MPI's mpirun).
+#: (MPICH's and Intel MPI's Hydra, Open MPI's mpirun), and with the rank's own number.
 LAUNCHER_SIZE_VARIABLES = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE")
+LAUNCHER_RANK_VARIABLES = ("PMI_RANK", "OMPI_COMM_WORLD_RANK")
+
+
+def launcher_rank() -> int:
+    """This process's rank in the MPI job mpiexec started it in (0 when it was not), from
+    the launcher's environment."""
+    for name in LAUNCHER_RANK_VARIABLES:
+        value = os.environ.get(name, "")
+        if value.isdigit():
+            return int(value)
+    return 0
 
 
 def launcher_ranks() -> int:

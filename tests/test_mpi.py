@@ -443,3 +443,17 @@ def test_backend_mpi_moves_a_scene_files_own_partpm_onto_the_ranks(tmp_path):
     assert "--backend mpi runs partpm's maps on the ranks; the scene file's integrator is " \
         "pm" in done.stderr
     assert done.stderr.count("partpm: error") == 1, done.stderr
+
+
+def test_only_rank_0_checks_and_makes_the_output_folders(tmp_path):
+    """Rank 0 alone writes the image; every rank checked (and made) the output's folder
+    before, so a node where the output path is not writable (here: rank 1 runs where 'out'
+    is a file) ended a job that rank 0 could finish."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    (b / "out").write_text("a file where rank 1 would make its folder")
+    args = [*CLI, "--resolution", "8x8", "-o", "out/x.exr"]
+    done = _mpmd(["-wdir", str(a), *args], ["-wdir", str(b), *args], timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (a / "out" / "x.exr").exists() and (b / "out").is_file()

@@ -178,9 +178,12 @@ def scene_file_integrator(scene: str) -> Optional[str]:
 
 
 def _output_path(args) -> Path:
+    from ..backends import launcher_rank
     out = Path(args.output)
     if out.suffix.lower() != ".exr":
         raise UsageError(f"-o must name an .exr file, got {args.output!r}")
+    if launcher_rank() > 0:
+        return out      # rank 0 alone writes (and checks, and makes the folders)
     # Before any work: an output that cannot be written would lose the whole render.
     check_writable(out, "-o")
     check_writable(out.with_suffix(".png"), "-o (its PNG)")
