@@ -108,7 +108,10 @@ def _check_number(owner, name, value, low=0.0, low_open=True, integer=False):
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or \
             not math.isfinite(value) or (integer and not float(value).is_integer()) or \
             not least <= value <= LARGEST:
-        raise ValueError(f"{what} must be {kind} {bound}, got {value!r}")
+        # A NumPy number as Python prints it.
+        shown = value.item() if isinstance(value, numbers.Number) and hasattr(value, "item") \
+            else value
+        raise ValueError(f"{what} must be {kind} {bound}, got {shown!r}")
 
 
 @dataclass(frozen=True)

@@ -520,14 +520,13 @@ class PhotonMapper(mi.SamplingIntegrator):
         """Per term, warn when its maps hold photons and visible points exist but no
         estimate found a photon (a radius far below the photons' spacing), or when a term's
         own maps (the caustic ones) hold none: the term then adds nothing."""
-        if visible == 0:
-            return
         prefixes = ["" if term.name == "global" else f"{term.name}_" for term in terms]
         # The maps of every process: the photons stored in all of them (the sums in
-        # ``arrays`` are every process's already).
+        # ``arrays`` are every process's already). Asked before anything returns: every
+        # process makes the same collective calls.
         every = [self.backend.total(int(self.stats.get(f"{prefix}photons_stored", 0)))
                  for prefix in prefixes]
-        if not self.backend.reports:
+        if visible == 0 or not self.backend.reports:
             return
         for j, (term, prefix, stored) in enumerate(zip(terms, prefixes, every)):
             if stored == 0:

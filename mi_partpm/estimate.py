@@ -230,7 +230,14 @@ class _Estimator:
             cos = dr.abs(mi.Frame3f.cos_theta(wo))
             general = found & ~lane.plain & (cos > 1e-6)
             f = lane.bsdf.eval(self.ctx, lane.si, wo, general) / dr.select(general, cos, 1.0)
-            value = dr.select(lane.plain, value, f * power)
+            # The BSDF reads the shading side; the photon must also lie on the same side of
+            # the geometric surface as of the shading one (either side: transmission), or a
+            # rough plastic on smooth normals took in the next face's photons over an edge
+            # (a tile at 1.13 of path's, found by a reviewer). n_view and n_geo are turned
+            # towards the viewer each: their dot product's sign turns them back.
+            agree = dr.dot(wi_photon, lane.n_view) * dr.dot(wi_photon, lane.n_geo) * \
+                dr.dot(lane.n_view, lane.n_geo) > 0
+            value = dr.select(lane.plain, value, dr.select(agree, f * power, 0.0))
         if self.weight is not None:
             value = value * self.weight(dist2, lane.radius2)
         return value

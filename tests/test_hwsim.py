@@ -295,6 +295,9 @@ def test_numpy_numbers_configure_as_python_ones():
         cfg = load_config(pe_count=p, clock_hz=np.float32(1e8), memory={"sram_bytes": p * 1024})
         assert cfg.pe_count == int(p) and type(cfg.pe_count) is int
         assert type(cfg.clock_hz) is float and type(cfg.memory.sram_bytes) is int
+    with pytest.raises(ValueError, match=r"pe_count must be an integer in \[1, 1e\+15\], got "
+                                         r"4611686018427387904$"):
+        load_config(pe_count=np.int64(2 ** 62))
 
 
 @pytest.mark.parametrize("changes, message", [
