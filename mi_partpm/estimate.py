@@ -196,14 +196,15 @@ class _Estimator:
         # The side of the surface the query sees: the shading normal turned towards the viewer.
         facing = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
         self.bounded = max_bounce is not None and maps.bounce is not None
-        # And the geometric surface's: a photon counts only where it arrived on the
-        # viewer's side of both. Where a mesh's smooth normals tilt from its faces, the
-        # shading side alone let in the photons of the next face over an edge (a box's
-        # side face at 1.14 of path's, 1.01 with both tests; the same image where the two
-        # normals agree).
-        geo_facing = dr.select(dr.dot(si.n, si.to_world(si.wi)) < 0, -1.0, 1.0)
-        self.lane = _Lane(si=si, bsdf=bsdf, n_view=si.sh_frame.n * facing,
-                          n_geo=si.n * geo_facing,
+        # And the geometric normal: a photon counts only where it lies on the same side
+        # of the geometric surface as of the shading one (:meth:`contribution`). Where a
+        # mesh's smooth normals tilt from its faces, the shading side alone let in the
+        # photons of the next face over an edge (a box's side face at 1.14 of path's, 1.01
+        # with both). The viewer's own geometric side is not asked: near a smooth mesh's
+        # silhouette the camera sees faces from behind that the shading normal turns
+        # towards it, and path lights them (a test of the viewer's side blackened patches
+        # of the Buddha). The same image where the two normals agree.
+        self.lane = _Lane(si=si, bsdf=bsdf, n_view=si.sh_frame.n * facing, n_geo=si.n,
                           plain=is_plain_diffuse(bsdf.flags(), bsdf),
                           radius2=dr.zeros(mi.Float, width) + radius2,
                           max_bounce=dr.zeros(mi.UInt32, width) + (
@@ -222,21 +223,20 @@ class _Estimator:
         maps = self.maps
         wi_photon = maps.photon_direction(i, found, code)
         power = maps.photon_power(i, found)
-        same_side = (dr.dot(wi_photon, lane.n_view) > 0) & \
-            (dr.dot(wi_photon, lane.n_geo) > 0)
-        value = dr.select(same_side, power, 0.0)
+        on_view = dr.dot(wi_photon, lane.n_view)
+        # On the same side of the geometric surface as of the shading one (either side:
+        # transmission); n_view is turned towards the viewer, and the sign of its dot
+        # product with n_geo turns it back.
+        agree = on_view * dr.dot(wi_photon, lane.n_geo) * dr.dot(lane.n_view, lane.n_geo) > 0
+        value = dr.select((on_view > 0) & agree, power, 0.0)
         if not self.all_plain:
             wo = lane.si.to_local(wi_photon)
             cos = dr.abs(mi.Frame3f.cos_theta(wo))
             general = found & ~lane.plain & (cos > 1e-6)
             f = lane.bsdf.eval(self.ctx, lane.si, wo, general) / dr.select(general, cos, 1.0)
-            # The BSDF reads the shading side; the photon must also lie on the same side of
-            # the geometric surface as of the shading one (either side: transmission), or a
+            # The BSDF reads the shading side; ``agree`` asks the geometric one too, or a
             # rough plastic on smooth normals took in the next face's photons over an edge
-            # (a tile at 1.13 of path's, found by a reviewer). n_view and n_geo are turned
-            # towards the viewer each: their dot product's sign turns them back.
-            agree = dr.dot(wi_photon, lane.n_view) * dr.dot(wi_photon, lane.n_geo) * \
-                dr.dot(lane.n_view, lane.n_geo) > 0
+            # (a tile at 1.13 of path's, found by a reviewer).
             value = dr.select(lane.plain, value, dr.select(agree, f * power, 0.0))
         if self.weight is not None:
             value = value * self.weight(dist2, lane.radius2)
