@@ -204,7 +204,11 @@ class _Estimator:
         # silhouette the camera sees faces from behind that the shading normal turns
         # towards it, and path lights them (a test of the viewer's side blackened patches
         # of the Buddha). The same image where the two normals agree.
-        self.lane = _Lane(si=si, bsdf=bsdf, n_view=si.sh_frame.n * facing, n_geo=si.n,
+        # n_geo is the geometric normal turned to n_view's side (once per query, not per
+        # photon), so a photon's two sides agree where its two dot products share a sign.
+        n_view = si.sh_frame.n * facing
+        n_geo = si.n * dr.select(dr.dot(n_view, si.n) < 0, -1.0, 1.0)
+        self.lane = _Lane(si=si, bsdf=bsdf, n_view=n_view, n_geo=n_geo,
                           plain=is_plain_diffuse(bsdf.flags(), bsdf),
                           radius2=dr.zeros(mi.Float, width) + radius2,
                           max_bounce=dr.zeros(mi.UInt32, width) + (
@@ -225,9 +229,8 @@ class _Estimator:
         power = maps.photon_power(i, found)
         on_view = dr.dot(wi_photon, lane.n_view)
         # On the same side of the geometric surface as of the shading one (either side:
-        # transmission); n_view is turned towards the viewer, and the sign of its dot
-        # product with n_geo turns it back.
-        agree = on_view * dr.dot(wi_photon, lane.n_geo) * dr.dot(lane.n_view, lane.n_geo) > 0
+        # transmission).
+        agree = on_view * dr.dot(wi_photon, lane.n_geo) > 0
         value = dr.select((on_view > 0) & agree, power, 0.0)
         if not self.all_plain:
             wo = lane.si.to_local(wi_photon)

@@ -192,27 +192,34 @@ def test_alpha_is_one_where_a_visible_environment_is_seen(kind):
         assert alpha[kind].min() == (0.0 if hide else 1.0)
 
 
-@pytest.mark.parametrize("kind", ["partpm", "pm"])
-def test_hide_emitters_makes_a_visible_area_light_a_miss_as_in_path(kind):
-    """A lit rectangle light (a diffuse BSDF of 0.8 under a point light) seen by the camera
-    with hide_emitters: Mitsuba's path renders it black with alpha 0, as if the camera ray
-    had missed; partpm and pm rendered the light it reflects (0.23, alpha 1)."""
+def _hidden_light_images(kind, shapes, photons, spp):
+    """``kind`` and Mitsuba's path with hide_emitters on ``shapes`` before a 16 x 16 RGBA
+    camera at z = 3, lit from the front by a point light: {name: image}."""
     scene = mi.load_dict({
         "type": "scene",
         "cam": {"type": "perspective", "fov": 40,
                 "to_world": T().look_at([0, 0, 3], [0, 0, 0], [0, 1, 0]),
                 "film": {"type": "hdrfilm", "width": 16, "height": 16,
                          "pixel_format": "rgba", "rfilter": {"type": "box"}}},
-        "light": {"type": "rectangle", "to_world": T().scale(0.5),
-                  "emitter": {"type": "area", "radiance": 5.0},
-                  "bsdf": {"type": "diffuse", "reflectance": 0.8}},
-        "front": {"type": "point", "position": [0, 0, 2], "intensity": 3.0}})
+        "front": {"type": "point", "position": [0, 0, 2], "intensity": 3.0}, **shapes})
     images = {}
     for name in (kind, "path"):
         props = {"type": name, "hide_emitters": True}
         if name != "path":
-            props["photon_count"] = 20_000
-        images[name] = np.array(mi.render(scene, integrator=mi.load_dict(props), spp=4))
+            props["photon_count"] = photons
+        images[name] = np.array(mi.render(scene, integrator=mi.load_dict(props), spp=spp))
+    return images
+
+
+@pytest.mark.parametrize("kind", ["partpm", "pm"])
+def test_hide_emitters_makes_a_visible_area_light_a_miss_as_in_path(kind):
+    """A lit rectangle light (a diffuse BSDF of 0.8 under a point light) seen by the camera
+    with hide_emitters: Mitsuba's path renders it black with alpha 0, as if the camera ray
+    had missed; partpm and pm rendered the light it reflects (0.23, alpha 1)."""
+    images = _hidden_light_images(kind, {
+        "light": {"type": "rectangle", "to_world": T().scale(0.5),
+                  "emitter": {"type": "area", "radiance": 5.0},
+                  "bsdf": {"type": "diffuse", "reflectance": 0.8}}}, 20_000, spp=4)
     assert images["path"][8, 8].tolist() == [0, 0, 0, 0]       # the light's middle
     np.testing.assert_array_equal(images[kind][..., 3], images["path"][..., 3])
     assert images[kind][8, 8].tolist() == [0, 0, 0, 0]
@@ -226,23 +233,11 @@ def test_hide_emitters_sees_what_is_behind_a_light_as_path_does(kind):
     must be path's exactly (coverage, not an estimate); the wall behind the light within
     15% of path's, the photon map's blur at the sphere's shadow edge and its noise at
     4 x 10^4 photons (measured: 1.02 partpm, 1.04 pm)."""
-    scene = mi.load_dict({
-        "type": "scene",
-        "cam": {"type": "perspective", "fov": 40,
-                "to_world": T().look_at([0, 0, 3], [0, 0, 0], [0, 1, 0]),
-                "film": {"type": "hdrfilm", "width": 16, "height": 16,
-                         "pixel_format": "rgba", "rfilter": {"type": "box"}}},
+    images = _hidden_light_images(kind, {
         "wall": {"type": "rectangle", "to_world": T().translate([0, 0, -1]),
                  "bsdf": {"type": "diffuse", "reflectance": 0.8}},
         "light": {"type": "sphere", "radius": 0.3,
-                  "emitter": {"type": "area", "radiance": 5.0}},
-        "front": {"type": "point", "position": [0, 0, 2], "intensity": 3.0}})
-    images = {}
-    for name in (kind, "path"):
-        props = {"type": name, "hide_emitters": True}
-        if name != "path":
-            props["photon_count"] = 40_000
-        images[name] = np.array(mi.render(scene, integrator=mi.load_dict(props), spp=16))
+                  "emitter": {"type": "area", "radiance": 5.0}}}, 40_000, spp=16)
     np.testing.assert_array_equal(images[kind][..., 3], images["path"][..., 3])
     middle = images["path"][6:10, 6:10]               # the light's middle: the wall behind
     assert middle[..., 3].min() == 1.0 and middle[..., 0].mean() > 0.1
