@@ -238,6 +238,25 @@ def test_a_scene_files_mpi_integrator_renders_on_the_ranks(tmp_path):
     assert "rank " in done.stdout and (tmp_path / "s.exr").exists()
 
 
+def test_backend_local_overrides_a_scene_files_mpi_partpm(tmp_path):
+    """--backend local runs a scene file's partpm with backend = mpi in this one process (it
+    used to stay on the MPI backend, a job of one rank); the stats name the backend that ran
+    (they named the command line's default)."""
+    xml = tmp_path / "mpi.xml"
+    xml.write_text('<scene version="3.0.0"><integrator type="partpm"><integer '
+                   'name="photon_count" value="2000"/><integer name="map_count" value="2"/>'
+                   '<string name="backend" value="mpi"/></integrator><sensor type="perspective">'
+                   '<film type="hdrfilm"><integer name="width" value="8"/><integer name="height" '
+                   'value="8"/></film></sensor><shape type="sphere"><emitter type="area"/>'
+                   '</shape><shape type="rectangle"><transform name="to_world"><translate '
+                   'z="-3"/><scale value="5"/></transform></shape></scene>')
+    for given, ran in ((["--backend", "local"], "local"), ([], "mpi")):
+        assert main(["render", str(xml), *given, "-o", str(tmp_path / "s.exr"),
+                     "--stats-json", str(tmp_path / "s.json")]) == 0
+        stats = json.loads((tmp_path / "s.json").read_text())
+        assert stats["backend"] == ran and stats["photons_traced"] == 2000
+
+
 def test_only_rank_0_reports_progress(tmp_path):
     done = _mpi(2, "-m", "mi_partpm.cli", "render", "cornell_box", "--maps", "2", "--photons",
                 "2000", "--spp", "1", "--resolution", "8x8", "--passes", "2", "--backend", "mpi",

@@ -118,9 +118,10 @@ def _render_options(sub):
                    help="write the image so far every K passes, K in [1, --passes] (default: "
                         "only at the end)")
     _quality_options(r)
-    r.add_argument("--backend", choices=("local", "mpi"), default="local",
-                   help="where the maps run: this process (the default), or the ranks of an "
-                        "MPI job (mpiexec -n P partpm render ... --backend mpi)")
+    r.add_argument("--backend", choices=("local", "mpi"),
+                   help="where the maps run: this process (local, the default), or the ranks "
+                        "of an MPI job (mpiexec -n P partpm render ... --backend mpi); given, "
+                        "it also overrides a scene file's partpm's backend")
     r.add_argument("--stats-json", metavar="FILE",
                    help="also write the run's figures (per rank with --backend mpi) as JSON")
     r.add_argument("-o", "--output", help="output EXR file, required (a PNG is written beside "

@@ -125,7 +125,7 @@ def integrator_desc(args) -> dict:
             raise UsageError(f"{' and '.join(given)} appl{'ies' if len(given) == 1 else 'y'} "
                              f"to --integrator pm only")
         desc["map_count"] = args.maps or 8
-        desc["backend"] = args.backend
+        desc["backend"] = args.backend or "local"
         for key, value in (("passes", args.passes), ("alpha", args.alpha),
                            ("time_limit", args.time)):
             if value is not None:
@@ -159,7 +159,7 @@ def _given_options(args) -> list:
     """The integrator options given on the command line, as the user typed them."""
     given = [f"--{o.replace('_', '-')}" for o in INTEGRATOR_OPTIONS
              if getattr(args, o, None) is not None]
-    return given + (["--backend"] if args.backend != "local" else [])
+    return given
 
 
 def scene_file_integrator(scene: str) -> Optional[str]:
@@ -204,7 +204,7 @@ def run_render(args) -> int:
         raise UsageError("render needs -o OUT.exr")
     # --backend says where the integrator runs, not what it is: alone, it moves a scene
     # file's own partpm onto the ranks.
-    given = [o for o in _given_options(args) if o != "--backend"]
+    given = _given_options(args)
     from_file = args.scene is not None and scene_file_integrator(args.scene)
     if from_file and given:
         log.warning("the command line's integrator (%s) replaces the <integrator> of %s",
@@ -243,13 +243,13 @@ def run_render(args) -> int:
         args.integrator = ours.get(type(integrator).__name__, type(integrator).__name__) \
             if not type(integrator).__module__.startswith("mitsuba") \
             else integrator.class_name()
-        if args.backend != "local":
-            if not hasattr(integrator, "run_on"):
-                raise UsageError(f"--backend {args.backend} runs partpm's maps on the ranks; "
-                                 f"the scene file's integrator is {args.integrator}: render "
-                                 f"the command line's partpm (--integrator partpm and its "
-                                 f"options) or give the scene file a partpm")
-            integrator.run_on(args.backend)
+        if args.backend is not None and hasattr(integrator, "run_on"):
+            integrator.run_on(args.backend)     # also --backend local over backend="mpi"
+        elif args.backend == "mpi":
+            raise UsageError(f"--backend mpi runs partpm's maps on the ranks; the scene "
+                             f"file's integrator is {args.integrator}: render the command "
+                             f"line's partpm (--integrator partpm and its options) or give "
+                             f"the scene file a partpm")
         if args.checkpoint_every and not (getattr(integrator, "passes", 1) > 1 and
                                           hasattr(integrator, "on_pass")):
             raise UsageError(f"--checkpoint-every writes the image between passes: the scene "
@@ -284,7 +284,7 @@ def run_render(args) -> int:
     stats = getattr(integrator, "stats", {})
     if backend is not None and not backend.is_root:
         return 0    # rank 0 holds the gathered image and writes it
-    _write(args, out, image, film, stats, seconds)
+    _write(args, out, image, film, stats, seconds, integrator)
     if not args.quiet:
         print(_summary(stats, seconds, out))
     return 0
@@ -404,12 +404,12 @@ def _checkpoints(every: int, out: Path, integrator, film):
     return on_pass
 
 
-def _write(args, out: Path, image, film, stats: dict, seconds: dict):
+def _write(args, out: Path, image, film, stats: dict, seconds: dict, integrator):
     from ..experiments.provenance import code_version
     if args.stats_json:
         write_atomic(args.stats_json, lambda name: Path(name).write_text(json.dumps(
             {"time_load": seconds["load"], "time_render": seconds["render"],
-             "scene": args.scene, "integrator": args.integrator, "backend": args.backend,
+             "scene": args.scene, "integrator": args.integrator, "backend": getattr(getattr(integrator, "backend", None), "name", "local"),
              "resolution": list(film.size()), "code": code_version(), **stats}, indent=2,
             default=str) + "\n"))
     _write_image(out, image, film)
