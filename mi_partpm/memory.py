@@ -185,8 +185,12 @@ def estimate_render(photon_count: int, max_depth: int, width: int, height: int, 
                           eye=eye_bytes(width, height, spp))
 
 
-def check_fits(estimate: MemoryEstimate, what: str = "this render"):
-    """Raise :class:`MemoryGuardError` when ``estimate`` exceeds the free memory."""
+def check_fits(estimate: MemoryEstimate, what: str = "this render",
+               option: str = "photon_count",
+               more: str = ", raise map_count (smaller maps make smaller waves), or lower "
+                           "max_depth"):
+    """Raise :class:`MemoryGuardError` when ``estimate`` exceeds the free memory. The
+    message says to lower ``option`` (what sets the photons), or what ``more`` adds."""
     free = available_bytes()
     if free is None or estimate.total <= free:
         return
@@ -203,9 +207,9 @@ def check_fits(estimate: MemoryEstimate, what: str = "this render"):
     raise MemoryGuardError(
         f"{what} needs about {estimate.describe()}, but only {size_text(free)} are free"
         f"{_share_text()}: "
-        f"lower photon_count (to about {int(estimate.photons * fraction * 0.9):,} per wave "
-        f"here), raise map_count (smaller maps make smaller waves), or lower max_depth, or "
-        f"the resolution / spp (the eye pass takes {size_text(estimate.eye)})")
+        f"lower {option} (to about {int(estimate.photons * fraction * 0.9):,} per wave "
+        f"here){more}, or the resolution / spp (the eye pass takes "
+        f"{size_text(estimate.eye)})")
 
 
 def _share_text() -> str:

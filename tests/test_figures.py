@@ -235,6 +235,10 @@ def test_figures_list_and_bad_only(tmp_path, capsys):
     assert not any(tmp_path.iterdir())              # --list runs and writes nothing
     assert main(["figures", "--smoke", "--out", str(tmp_path), "--only", "nope"]) == 2
     assert "--only: no step or group 'nope'" in capsys.readouterr().err
+    for empty in ("", ","):                          # not "every step"
+        assert main(["figures", "--smoke", "--list", "--out", str(tmp_path), "--only",
+                     empty]) == 2
+        assert "--only must name one or more steps" in capsys.readouterr().err
 
 
 def test_figures_help_names_every_group_of_steps():

@@ -1,4 +1,5 @@
 """Bad input fails fast and clearly; big input is guarded; output is finite and reproducible."""
+import json
 import math
 from pathlib import Path
 
@@ -218,6 +219,27 @@ def test_cli_errors_met_inside_an_experiments_render_are_one_line(tmp_path, caps
         "Traceback" not in "".join(err)
     assert main(["render", "cornell_box", "--caustic-photons", "0", "--photons", "2000",
                  "--resolution", "8x8", "-q", "-o", str(tmp_path / "x.exr")]) == 0
+
+
+def test_converge_keeps_k_and_reuses_a_reference_of_its_own_variant_only(tmp_path, capsys):
+    """pm's curve starts at 4 k photons when k asks for more than 10,000 (a k of 3,000 was
+    cut to the photons of the warm-up and of the first renders while converge.json said
+    3,000); a cached reference is reused only by the variant that rendered it (a mono run
+    reused an RGB reference and failed on the shapes)."""
+    out = tmp_path / "v"
+    args = ["converge", "cornell_box", "--resolution", "8x8", "--reference-spp", "4",
+            "--time", "0.01", "--out", str(out)]
+    assert main([*args, "--k", "3000", "--methods", "pm"]) == 0
+    rows = json.loads((out / "converge.json").read_text())["rows"]
+    assert rows[0]["setting"] == "12000 photons"
+    meta = json.loads((out / "reference.json").read_text())
+    assert meta["variant"] == mi.variant()
+    capsys.readouterr()
+    assert main([*args, "--methods", "path"]) == 0
+    assert "reference: reusing" in capsys.readouterr().out
+    (out / "reference.json").write_text(json.dumps({**meta, "variant": "other_rgb"}))
+    assert main([*args, "--methods", "path"]) == 0
+    assert "reference: reusing" not in capsys.readouterr().out
 
 
 def test_a_scene_whose_box_is_repaired_is_said_once_and_not_as_a_warning(tmp_path, caplog,

@@ -125,6 +125,27 @@ def test_speedup_cli_and_errors(tmp_path, capsys):
     assert main(["speedup", "cornell_box", "--maps", "1,3,7", "--photons", "20",
                  "--out", str(tmp_path)]) == 2
     assert "lcm = 21" in capsys.readouterr().err
+    # The speedup is against one map: a list without 1 is refused, not measured against its
+    # smallest n under a "1 map" label; a count given twice too, before the out folder is made.
+    for maps, said in (("4,2", "--maps must include 1"), ("1,2,2", "--maps lists 2 more than "
+                                                                   "once")):
+        assert main(["speedup", "cornell_box", "--maps", maps, "--photons", "2000",
+                     "--out", str(tmp_path / "new")]) == 2
+        assert said in capsys.readouterr().err
+        assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.parametrize("command", ["speedup", "calibrate"])
+def test_speedup_and_calibrate_stop_an_oversize_request_before_tracing(command, tmp_path,
+                                                                       capsys, monkeypatch):
+    """They trace every photon at once: 2 x 10^6 photons where 50 MB are free is refused
+    before tracing with the option to lower (both used to trace until memory ran out)."""
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "50e6")
+    assert main([command, "cornell_box", "--maps", "1,2", "--photons", "2000000",
+                 "--resolution", "16x16", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "--photons 2000000 needs about" in err and "lower --photons (to about" in err
+    assert "tracing" not in err and "max_depth" not in err and "map_count" not in err
 
 
 CALIBRATE_TINY = ["--leaf-sizes", "4,16", "--radius-fractions", "0.05,0.1", "--maps", "1,2",
@@ -255,6 +276,11 @@ def test_calibrate_cli_errors(tmp_path, capsys):
     assert main(["calibrate", "cornell_box", "--radius-fractions", "0.05,2", "--out",
                  str(tmp_path)]) == 2
     assert "--radius-fractions must be distinct numbers in (0, 1]" in capsys.readouterr().err
+    # A map count given twice was dropped without a word (and passed the fit's size check).
+    assert main(["calibrate", "cornell_box", "--maps", "1,1,1,1,1,1,1", "--leaf-sizes", "8",
+                 "--radius-fractions", "0.05", "--photons", "2000", "--out",
+                 str(tmp_path)]) == 2
+    assert "--maps lists 1 more than once" in capsys.readouterr().err
     assert main(["calibrate", "--out", str(tmp_path)]) == 2
     assert "calibrate needs SCENE" in capsys.readouterr().err
     assert main(["calibrate", "--refit", "--out", str(tmp_path)]) == 2
@@ -271,6 +297,12 @@ RATIO_OF = {
     "process peak, bytes per stored photon": (lambda r: r["peak_rss_bytes"] / r["stored"],
                                               "B/photon"),
 }
+
+
+def test_bench_refuses_an_empty_out_before_any_work(capsys):
+    """--out '' ran the whole bench and wrote nothing, in silence."""
+    assert main(["bench", "--smoke", "--out", ""]) == 2
+    assert "--out needs a file name, got ''" in capsys.readouterr().err
 
 
 def test_bench_smoke(tmp_path, capsys):

@@ -64,7 +64,7 @@ def run_bench(args) -> int:
     setup(args)
     from ..experiments.bench import format_bench, run_bench as run
     check_scene_name(args.scene)
-    if args.out:
+    if args.out is not None:                   # "" is refused, not taken as no file
         check_writable(args.out, "--out")
     try:
         result = run(args.out, args.scene, size="smoke" if args.smoke else "full",
@@ -89,12 +89,10 @@ def run_hwsim(args) -> int:
 def run_speedup(args) -> int:
     if not setup(args):
         return 0
-    from ..experiments.speedup import format_speedup, run_speedup
+    from ..experiments.speedup import check_speedup, format_speedup, run_speedup
     maps = int_list("--maps", args.maps)
-    twice = sorted({n for n in maps if maps.count(n) > 1})
-    if twice:
-        raise UsageError(f"--maps lists {', '.join(map(str, twice))} more than once: give "
-                         f"each map count once")
+    with user_errors(in_settings):              # the list's own errors, before any work
+        check_speedup(maps, args.photons, args.repeats)
     check_eye_pass(args.resolution, args.spp)
     check_scene_name(args.scene)
     check_folder(args.out, "--out")

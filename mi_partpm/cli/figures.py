@@ -9,7 +9,12 @@ __all__ = ["run_figures"]
 
 def run_figures(args) -> int:
     from ..experiments.regenerate import run_figures as run
-    only = [t.strip() for t in args.only.split(",") if t.strip()] if args.only else None
+    only = None
+    if args.only is not None:
+        only = [t.strip() for t in args.only.split(",") if t.strip()]
+        if not only:                     # "" or "," would otherwise mean every step
+            raise UsageError(f"--only must name one or more steps (comma-separated; --list "
+                             f"shows them), got {args.only!r}")
     argv = "partpm figures" + "".join(
         f" {flag}" for flag, on in (("--smoke", args.smoke), ("--list", args.list)) if on)
     if args.out:

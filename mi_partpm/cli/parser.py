@@ -33,10 +33,12 @@ def _scene_options(p, compare: bool = False):
     p.add_argument("--maps", type=positive_int("--maps"),
                    help="number of partial photon maps n, in [1, --photons] (default 8)")
     # An experiment traces every map's photons in one run, of at most 2^32 - 1 paths.
+    # compare renders pm too, whose k nearest photons are at least 2.
     p.add_argument("--photons", default=100_000,
-                   type=positive_int("--photons", high=MAX_RUN if compare else None),
-                   help="photons emitted in total N, >= 1" + (" and < 2^32" if compare else "")
-                   + " (default 100000)")
+                   type=positive_int("--photons", low=2 if compare else 1,
+                                     high=MAX_RUN if compare else None),
+                   help="photons emitted in total N, " + (">= 2 and < 2^32" if compare else
+                                                          ">= 1") + " (default 100000)")
     p.add_argument("--k", type=positive_int("--k", 2, MAX_K),
                    help=f"photons per kNN estimate of pm, in [2, {MAX_K}] " + (
                        "(default: the k whose mean radius matches partpm's)" if compare
@@ -183,7 +185,8 @@ def _experiment_options(sub):
     v.add_argument("--spp", type=positive_int("--spp"), default=4,
                    help="partpm's eye samples per pixel and pass (default 4)")
     v.add_argument("--photons", type=positive_int("--photons", high=MAX_RUN), default=100_000,
-                   help="partpm's photons per pass, pm's in all, in [1, 2^32) (default 100000)")
+                   help="partpm's photons per pass, in [1, 2^32) (default 100000; pm's "
+                        "curve doubles its photons from 10000, or from 4 k when larger)")
     v.add_argument("--maps", type=positive_int("--maps"), default=8,
                    help="partpm's maps (default 8)")
     v.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),

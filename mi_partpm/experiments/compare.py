@@ -62,7 +62,7 @@ class CompareSettings:
 
     def check(self):
         """Raise a ValueError naming the first bad setting."""
-        check_int("photons", self.photons, low=1)
+        check_int("photons", self.photons, low=2)     # pm's k nearest photons: k >= 2
         check_int("maps", self.maps, low=1, high=self.photons)
         check_int("spp", self.spp, low=1)
         check_int("reference_spp", self.reference_spp, low=1)
@@ -75,7 +75,7 @@ class CompareSettings:
                              f"{self.resolution[0]}x{self.resolution[1]}")
         check_float("radius_fraction", self.radius_fraction, low=0.0, high=1.0)
         if self.k is not None:
-            check_int("k", self.k, low=1, high=self.photons)
+            check_int("k", self.k, low=2, high=self.photons)
         check_choice("direct", self.direct, ("photons", "nee"))
 
 
@@ -107,8 +107,8 @@ def best_desc(s: "CompareSettings") -> dict:
     props = {k: v for k, v in BEST.items() if k not in _BEST_SETTINGS}
     share = BEST.get("caustic_share", 0.0)
     caustic = int(round(s.photons * share))
-    if caustic and caustic < s.maps:
-        caustic = 0
+    if caustic and min(caustic, s.photons - caustic) < s.maps:
+        caustic = 0      # too few photons to split: every map of both kinds needs one
     desc = {"type": "partpm", "photon_count": s.photons - caustic, "seed": s.seed,
             "map_count": s.maps, "radius_fraction": s.radius_fraction, **props}
     if caustic:

@@ -61,7 +61,7 @@ class ConvergeSettings:
     seconds: float = 25.0
     resolution: Tuple[int, int] = (160, 160)
     spp: int = 4                    # partpm: eye samples per pixel and pass
-    photons: int = 100_000          # partpm: photons per pass
+    photons: int = 100_000          # partpm: photons per pass (pm's curve: PM_START, doubled)
     maps: int = 8
     radius_fraction: Optional[float] = None   # partpm's initial radius (None: its default)
     alpha: float = 0.7
@@ -107,7 +107,7 @@ def path_reference(s: ConvergeSettings, out: Path, say) -> np.ndarray:
     """Mitsuba's ``path`` at ``reference_spp``, averaged over chunks; cached in ``out``."""
     meta = {"scene": s.scene, "scene_sha256": scene_digest(s.scene, s.data_dir),
             "resolution": list(s.resolution), "spp": s.reference_spp, "seed": s.seed,
-            "mitsuba": mi.__version__}
+            "mitsuba": mi.__version__, "variant": mi.variant()}
     exr, info = out / "reference.exr", out / "reference.json"
     if exr.is_file() and info.is_file() and json.loads(info.read_text()) == meta:
         say(f"reference: reusing {exr}")
@@ -188,15 +188,20 @@ def _path(s: ConvergeSettings, ref, say) -> list:
     return rows
 
 
+#: Photons of pm's first render (more when k asks for it); each next render doubles them.
+PM_START = 10_000
+
+
 def _pm(s: ConvergeSettings, ref, say) -> list:
     scene = _scene(s, s.spp)
 
     def render(photons):
-        integrator = mi.load_dict({"type": "pm", "photon_count": photons,
-                                   "k": min(s.k, photons), "seed": s.seed})
+        integrator = mi.load_dict({"type": "pm", "photon_count": photons, "k": s.k,
+                                   "seed": s.seed})
         img, seconds = timed(lambda: mi.render(scene, integrator=integrator, seed=s.seed))
         return _image(img), seconds
-    return _doubling("pm", s, ref, say, render, 10_000, "photons")
+    # From 10,000 photons, or 4 k: the warm-up's quarter of it holds k photons.
+    return _doubling("pm", s, ref, say, render, max(PM_START, 4 * s.k), "photons")
 
 
 def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:

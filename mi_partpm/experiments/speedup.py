@@ -35,6 +35,7 @@ import numpy as np
 
 from hwsim.workload import MapWorkloads, save_workloads
 from .provenance import code_version, l1_data_bytes, simd_lanes
+from .. import memory
 from ..estimate import radiance_estimate
 from ..eyepath import first_hits
 from ..kdtree import LEAF_SIZE, NODE_BYTES
@@ -43,7 +44,7 @@ from ..scenes import load_scene
 from ..timing import timed
 from ..trace import trace_photons
 
-__all__ = ["run_speedup", "format_speedup", "plot_speedup", "gather_bound", "gather_excess",
+__all__ = ["run_speedup", "check_speedup", "format_speedup", "plot_speedup", "gather_bound", "gather_excess",
            "GatherError", "build_maps", "time_map", "map_counts", "map_workloads"]
 
 log = logging.getLogger("mi_partpm")
@@ -129,9 +130,14 @@ class _Setup:
 
 
 def _check(maps_list, photons, repeats):
-    maps_list = sorted(set(int(n) for n in maps_list))
+    given = [int(n) for n in maps_list]
+    maps_list = sorted(set(given))
     if not maps_list or maps_list[0] < 1:
         raise ValueError(f"--maps must list integers >= 1, got {maps_list}")
+    twice = sorted({n for n in given if given.count(n) > 1})
+    if twice:
+        raise ValueError(f"--maps lists {', '.join(map(str, twice))} more than once: give each "
+                         f"map count once")
     lcm = math.lcm(*maps_list)
     if lcm > photons:
         raise ValueError(f"the maps {maps_list} need lcm = {lcm} photon streams but only "
@@ -142,12 +148,31 @@ def _check(maps_list, photons, repeats):
     return maps_list, lcm
 
 
+def check_speedup(maps_list, photons, repeats=1):
+    """The sorted map counts of a speedup run and their lcm (the photon streams); a
+    ValueError naming the option when they cannot be measured."""
+    maps_list, lcm = _check(maps_list, photons, repeats)
+    if maps_list[0] != 1:
+        raise ValueError(f"--maps must include 1: the speedup is one map's time over n maps' "
+                         f"time, got {maps_list}")
+    return maps_list, lcm
+
+
 def _setup(scene_name, photons, streams, resolution, spp, radius_fraction, seed, data_dir,
            say) -> _Setup:
     scene = load_scene(scene_name, resolution=resolution, spp=spp, data_dir=data_dir)
     radius = fixed_radius(scene, None, radius_fraction)
+    width, height = resolution
+
+    def fits(stored_per_emitted=None, done=None):
+        """The memory guard: before tracing, and again with the stored photons measured."""
+        estimate = memory.estimate_render(photons, -1, width, height, spp, stored_per_emitted)
+        memory.check_fits(estimate, f"--photons {photons}" + (
+            f" (projected from the first {done:,} photons traced)" if done else ""),
+            option="--photons", more="")
+    fits()
     say(f"tracing {photons} photons into {streams} streams ...")
-    traced = trace_photons(scene, photons, streams, seed)
+    traced = trace_photons(scene, photons, streams, seed, memory_check=fits)
     si, bsdf, _ = first_hits(scene, spp, seed)
     setup = _Setup(scene_name, scene, photons, traced, si, bsdf, radius,
                    dr.full(mi.Bool, True, dr.width(si.p)))
@@ -236,7 +261,7 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
                 save_workload_files: bool = True, progress=print) -> dict:
     """Run the experiment; write ``speedup.csv``, ``speedup.json``, ``speedup.png`` and the
     workloads (``workloads/n{n}.npz`` + ``workloads/meta.json``) into ``out_dir``."""
-    maps_list, lcm = _check(maps_list, photons, repeats)
+    maps_list, lcm = check_speedup(maps_list, photons, repeats)
     say = progress or (lambda *a: None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
