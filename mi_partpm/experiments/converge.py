@@ -8,8 +8,8 @@ reused when the scene file, size, sample count and Mitsuba version match: the re
 not depend on this project's code).
 
 - **partpm**: one progressive render with ``time_limit = seconds``; after passes 1, 2, 3, 4,
-  6, 8, 12, ... the image so far is developed and measured (the time spent doing so is not
-  counted).
+  6, 8, 11, 16, 23, ... (about sqrt 2 apart) the image so far is developed and measured (the
+  time spent doing so is not counted).
 - **path**: renders of 1, 2, 4, ... samples per pixel, each timed on its own, until one takes
   longer than ``seconds`` (above ``PATH_CHUNK_SPP`` samples, in chunks of that many, whose
   times add up).
