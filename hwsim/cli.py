@@ -61,8 +61,10 @@ def _check_out(out):
     """Refuse an ``--out`` that cannot be made or written before the simulation; folders
     made to find out are removed again (the report makes them once the inputs are read)."""
     path = Path(out)
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"the output folder {path} is a file, not a folder (--out)")
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir():
+        raise ValueError(f"--out {str(out)!r} cannot be made: {str(existing)!r} is a file, "
+                         f"not a folder")
     missing = [p for p in (path, *path.parents) if not p.exists()]
     try:
         path.mkdir(parents=True, exist_ok=True)

@@ -209,7 +209,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         maps = owned if maps is None else np.asarray(maps, dtype=np.int64)
         traced_here = int(map_sizes(layer.photon_count, self.map_count)[maps].sum())
         bounded = p.max_depth != UNLIMITED_DEPTH
-        guard = self._tracing_guard(scene, sensor, spp, maps)
+        guard = self._tracing_guard(scene, sensor, spp, maps, layer)
         clock = Stopwatch()
         layer.maps = None           # the last wave's maps are freed before the next are traced
         photons = trace_photons(scene, layer.photon_count, self.map_count,
@@ -278,10 +278,30 @@ class PhotonMapper(mi.SamplingIntegrator):
         layers = self._layers if layers is None else layers
         return sum(map_sizes(l.photon_count, self.map_count) for l in layers)
 
-    def _stored_ratio(self):
-        """Photons stored per emitted, as measured so far (None before the first wave)."""
-        seen = list(self._stored_per_emitted.values())
-        return max(seen) if seen else None
+    def _stored_ratio(self, maps=None, tracing=None):
+        """Photons stored per photon emitted over the layers of ``maps`` (default: every map
+        this process owns), each layer's emitted photons weighted by its own ratio: measured
+        in an earlier wave (or, for the layer being traced, ``tracing = (name, ratio)`` so
+        far), else assumed (:func:`~mi_partpm.memory.assumed_stored_per_emitted`: a caustic
+        path stores one photon where it lands, a global one about three). None where every
+        layer is assumed to hold the global assumption."""
+        if not self._layers:
+            self._layers = self.layers()
+        maps = self.backend.owned_maps(self.map_count) if maps is None else maps
+        measured = dict(self._stored_per_emitted)
+        if tracing is not None:
+            measured[tracing[0]] = tracing[1]
+        if not measured and all(l.paths != "caustic" for l in self._layers):
+            return None
+        emitted = stored = 0.0
+        for layer in self._layers:
+            e = float(map_sizes(layer.photon_count, self.map_count)[maps].sum())
+            ratio = measured.get(layer.name)
+            if ratio is None:
+                ratio = memory.assumed_stored_per_emitted(layer.paths,
+                                                          self._photon_depth(layer))
+            emitted, stored = emitted + e, stored + e * ratio
+        return stored / emitted if emitted else None
 
     def plan_waves(self, scene, sensor=0, spp: int = 0) -> list:
         """The waves of this process's maps (lists of map indices) for the next pass: the
@@ -291,27 +311,49 @@ class PhotonMapper(mi.SamplingIntegrator):
         if not self._layers:
             self._layers = self.layers()
         sizes = self._emitted_per_map()[owned]
-        depth, ratio = self._photon_depth(), self._stored_ratio()
+        depth, ratio = self._photon_depth(), self._stored_ratio(owned)
         eye = memory.eye_bytes(*self._eye_size(scene, sensor, spp))
         budget = memory.wave_budget(eye, self.wave_bytes)
-        waves = memory.plan_waves(sizes, depth, budget, ratio, self.maps_per_wave)
+        share = self._batch_share()
+        waves = memory.plan_waves(sizes, depth, budget, ratio, self.maps_per_wave, share)
         width, height, samples = self._eye_size(scene, sensor, spp)
         estimate = memory.estimate_render(int(sizes.sum()), depth, width, height, samples,
-                                          ratio, waves, sizes)
-        memory.check_fits(estimate, f"photon_count = {self.params.photon_count}")
+                                          ratio, waves, sizes, share)
+        memory.check_fits(estimate, self._photons_text(), option=self._photons_option())
         return [[int(owned[i]) for i in wave] for wave in waves]
 
-    def _tracing_guard(self, scene, sensor, spp, maps):
-        """The check repeated while a wave is traced, with the measured photons stored per
-        photon emitted: does the wave still fit?"""
+    def _batch_share(self) -> float:
+        """The share of a wave's photons traced at once: the largest layer's (the layers
+        are traced one after the other)."""
+        counts = [l.photon_count for l in self._layers]
+        return max(counts) / sum(counts) if sum(counts) else 1.0
+
+    def _photons_text(self) -> str:
+        """The props that set the photons, for the memory guard's messages."""
+        caustic = [l for l in self._layers if l.name != "global"]
+        return f"photon_count = {self.params.photon_count}" + "".join(
+            f", {l.name}_photon_count = {l.photon_count}" for l in caustic)
+
+    def _photons_option(self) -> str:
+        """What to lower: photon_count, or its sum with the caustic maps' photons."""
+        names = [f"{l.name}_photon_count" if l.name != "global" else "photon_count"
+                 for l in self._layers]
+        return " + ".join(names) if len(names) > 1 else "photon_count"
+
+    def _tracing_guard(self, scene, sensor, spp, maps, layer):
+        """The check repeated while ``layer``'s wave is traced, with its measured photons
+        stored per photon emitted: does the wave still fit?"""
         width, height, samples = self._eye_size(scene, sensor, spp)
         emitted = int(self._emitted_per_map()[maps].sum())
         depth = self._photon_depth()
 
         def check_during(ratio, done):
-            estimate = memory.estimate_render(emitted, depth, width, height, samples, ratio)
-            memory.check_fits(estimate, f"photon_count = {self.params.photon_count} "
-                                        f"(projected from the first {done:,} photons traced)")
+            wave_ratio = self._stored_ratio(maps, tracing=(layer.name, ratio))
+            estimate = memory.estimate_render(emitted, depth, width, height, samples,
+                                              wave_ratio, batch_share=self._batch_share())
+            memory.check_fits(estimate, f"{self._photons_text()} (projected from the first "
+                                        f"{done:,} photons traced)",
+                              option=self._photons_option())
         return check_during
 
     def _add_stats(self, **values):
@@ -526,14 +568,18 @@ class PhotonMapper(mi.SamplingIntegrator):
         # process makes the same collective calls.
         every = [self.backend.total(int(self.stats.get(f"{prefix}photons_stored", 0)))
                  for prefix in prefixes]
+        traced = [self.backend.total(int(self.stats.get(f"{prefix}photons_traced", 0)))
+                  for prefix in prefixes]
         if visible == 0 or not self.backend.reports:
             return
         for j, (term, prefix, stored) in enumerate(zip(terms, prefixes, every)):
             if stored == 0:
                 if prefix:
-                    log.warning("no %s photon was stored: the scene has no such light path "
-                                "(for caustics: emitter, mirror or glass, then a diffuse "
-                                "surface); the %s maps add nothing", term.name, term.name)
+                    log.warning("no %s photon was stored of the %d traced: the scene has no "
+                                "such light path (for caustics: emitter, mirror or glass, "
+                                "then a diffuse surface), or too few photons were traced to "
+                                "find one (raise %sphoton_count); the %s maps add nothing",
+                                term.name, traced[j], prefix, term.name)
                 continue
             if float(dr.sum(arrays[2 * j + 1])[0]) == 0:
                 r = self.radius if not prefix else self.stats.get(f"{prefix}radius")

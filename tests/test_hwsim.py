@@ -885,10 +885,10 @@ def test_hwsim_cli_points_at_the_workloads_folder_and_refuses_a_file_as_out(tmp_
     taken = tmp_path / "taken"
     taken.write_text("")
     assert main(["hwsim", str(tmp_path / "workloads"), "--out", str(taken)]) == 2
-    assert f"the output folder {taken} is a file" in capsys.readouterr().err
+    assert f"--out '{taken}' cannot be made: '{taken}' is a file" in capsys.readouterr().err
     # A folder that cannot be made is refused before the workloads are read and simulated.
     assert main(["hwsim", str(tmp_path / "nowhere"), "--out", str(taken / "sub")]) == 2
-    assert f"--out '{taken / 'sub'}' cannot be written: Not a directory" in \
+    assert f"--out '{taken / 'sub'}' cannot be made: '{taken}' is a file, not a folder" in \
         capsys.readouterr().err
 
 

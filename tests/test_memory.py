@@ -115,6 +115,34 @@ def test_many_small_maps_fit_where_one_large_map_does_not(monkeypatch):
     assert integrator.stats["waves"] > 1 and img.mean() > 0
 
 
+def test_caustic_maps_are_planned_at_their_own_photons_stored_per_emitted(monkeypatch):
+    """A caustic path stores a photon only after a mirror or glass (0.07 per emitted in the
+    Cornell box), and the layers are traced one after the other: 200,000 caustic photons
+    beside 200,000 global ones fit where the global ones alone fit, in as many waves (the
+    guard took them at the global maps' 3 per emitted, and traced at once, and refused).
+    Where they do not fit, the message names both counts and a target below the wave's."""
+    scene = mi_partpm.load_scene("cornell_box", resolution=(32, 32), spp=16)
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "50e6")
+    waves = []
+    for extra in ({}, {"caustic_photon_count": 200_000}):
+        integrator = mi.load_dict({"type": "partpm", "photon_count": 200_000, "map_count": 4,
+                                   **extra})
+        assert render(scene, integrator).mean() > 0
+        waves.append(integrator.stats["waves"])
+    assert waves == [4, 4]
+    assert integrator.stats["caustic_photons_stored"] < 0.2 * 200_000
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "20e6")
+    with pytest.raises(Exception) as e:
+        render(scene, mi.load_dict({"type": "partpm", "photon_count": 200_000,
+                                    "caustic_photon_count": 200_000}))
+    assert isinstance(e.value.__cause__, MemoryGuardError)
+    text = str(e.value.__cause__)
+    assert "photon_count = 200000, caustic_photon_count = 200000 needs about" in text
+    target = int(text.split("lower photon_count + caustic_photon_count (to about ")[1]
+                 .split(" per wave")[0].replace(",", ""))
+    assert 0 < target < 400_000
+
+
 def test_mpi_ranks_on_one_machine_share_its_free_memory(monkeypatch):
     """P ranks of an MPI job on one machine each planned their waves and checked their
     render against all of its free memory (P times what was there); each now has its share,

@@ -308,12 +308,13 @@ def test_scaling_command_small(tmp_path, capsys):
     # reduction benchmark alone (mi_partpm.experiments.mpimodel). P = 1 reproduces itself
     # by construction, up to the medians of its parts over the repeats against the median of
     # their sums: at this size a run is a tenth of a second and the two medians differ by
-    # the repeats' spread (measured 0.0-0.3% over 5 repeats, bound 5%; 5.8% was seen once
-    # over 3, one slow round of one phase moving a median of three); P = 2 is out of
+    # the repeats' spread (measured 0.0-0.3% over 5 repeats; 5.8% was seen once over 3, one
+    # slow round of one phase moving a median of three, and 13.8% while another process
+    # shared the 2 cores: bound 25%, still far below the 2x of a wrong model); P = 2 is out of
     # sample. At this tiny size start-up costs weigh more than at the README's (where the
     # command reports the error), so the bound is loose: 50% (measured -20%). A model that
     # forgot the replicated eye pass or the shared cores misses by 2x.
-    assert abs(rows[0]["render_pred_rel_error"]) < 0.05
+    assert abs(rows[0]["render_pred_rel_error"]) < 0.25
     assert rows[1]["render_pred_out_of_sample"] and not rows[0]["render_pred_out_of_sample"]
     assert abs(rows[1]["render_pred_rel_error"]) < 0.5, rows[1]
     for r in rows:

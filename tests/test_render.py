@@ -322,8 +322,12 @@ def test_caustic_maps_default_to_a_quarter_of_an_explicit_radius_and_warn_when_e
         render(scene, integrator)
     assert integrator.stats["caustic_radius"] == pytest.approx(0.1)
     assert integrator.stats["caustic_photons_stored"] == 0
-    assert "no caustic photon was stored" in caplog.text
+    assert "no caustic photon was stored of the 2000 traced" in caplog.text
+    assert "or too few photons were traced to find one (raise caustic_photon_count)" in \
+        caplog.text
     assert "no photon was found" not in caplog.text
+    # The caustic maps' radius is part of what the integrator says it is.
+    assert "caustic_photon_count = 2000, caustic_radius = 0.1," in str(integrator)
 
 
 @pytest.mark.parametrize("props", [{"type": "partpm", "radius": 1e-9},
