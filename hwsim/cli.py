@@ -8,7 +8,6 @@ exit status 2.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -47,7 +46,6 @@ def run(args, code=None) -> int:
         raise ValueError(f"pe_count in {args.config}: the report sets the PE count itself (one "
                          f"PE per map at every recorded n, and P = 1, 2, 4, ... n at the "
                          f"largest n); remove the key (it is simulate()'s, in Python)")
-    _check_out(args.out)
     say = None if args.quiet else (lambda line: print(line, flush=True))
     result = run_report(args.workloads, config, args.out, args.check, progress=say, code=code)
     if not args.quiet:
@@ -55,28 +53,6 @@ def run(args, code=None) -> int:
         print(f"wrote    {args.out}/report.json, report.csv, sweep.csv, contention.csv, "
               f"sensitivity.csv, hwsim.png")
     return 0
-
-
-def _check_out(out):
-    """Refuse an ``--out`` that cannot be made or written before the simulation; folders
-    made to find out are removed again (the report makes them once the inputs are read)."""
-    path = Path(out)
-    existing = next(p for p in (path, *path.parents) if p.exists())
-    if not existing.is_dir():
-        raise ValueError(f"--out {str(out)!r} cannot be made: {str(existing)!r} is a file, "
-                         f"not a folder")
-    missing = [p for p in (path, *path.parents) if not p.exists()]
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        probe = path / f".probe{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as e:
-        raise ValueError(f"--out {str(out)!r} cannot be written: {e.strerror or e}") from None
-    finally:
-        for folder in missing:               # deepest first
-            if folder.is_dir():
-                folder.rmdir()
 
 
 def main(argv=None) -> int:

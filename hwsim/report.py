@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 from dataclasses import asdict
 from pathlib import Path
 
@@ -166,11 +167,14 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
     if out.exists() and not out.is_dir():
         raise ValueError(f"the output folder {out} is a file: the report writes a folder of "
                          f"files")
-    try:
+    try:                                    # made and written to before the simulation
         out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".probe{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
     except OSError as e:
-        raise ValueError(f"the output folder {out} cannot be made: {e.strerror or e}") \
-            from None
+        raise ValueError(f"the output folder {out} cannot be made or written: "
+                         f"{e.strerror or e}") from None
     rows, detail = _per_n(config, loads)
     n_max = max(loads)
     pes = [2 ** i for i in range(n_max.bit_length()) if 2 ** i <= n_max]

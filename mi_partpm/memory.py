@@ -22,9 +22,10 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 __all__ = ["available_bytes", "share_memory", "peak_rss_bytes", "MemoryEstimate", "estimate_render",
-           "check_fits", "assumed_stored_per_emitted", "plan_waves", "wave_budget", "MemoryGuardError", "TRACE_BATCH",
-           "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES", "EYE_BYTES_PER_SAMPLE",
-           "ASSUMED_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES"]
+           "check_fits", "assumed_stored_per_emitted", "plan_waves", "wave_budget",
+           "MemoryGuardError", "TRACE_BATCH", "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES",
+           "EYE_BYTES_PER_SAMPLE", "ASSUMED_STORED_PER_EMITTED",
+           "ASSUMED_CAUSTIC_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES"]
 
 #: Photon paths traced together at most (larger counts run in batches of this size).
 TRACE_BATCH = 1 << 20
@@ -46,7 +47,8 @@ WAVE_BYTES_PER_STORED = 150
 #: traced on by BSDF sampling, with emitter sampling) bytes per sample.
 EYE_BYTES_PER_SAMPLE = 280
 #: Photons stored per emitted photon assumed before tracing, when max_depth does not bound it
-#: lower (measured: 3.0 in the Cornell box, 0.5 for the open Buddha scene). After the first
+#: lower (measured: 2.9-3.0 in the Cornell box, 3.4 in glossy_spheres, 4.0 in caustic_glass,
+#: 0.5 for the open Buddha scene). After the first
 #: wave the measured ratio replaces it.
 ASSUMED_STORED_PER_EMITTED = 3.0
 #: The most bytes one wave's photon maps may take by default: renders larger than this run in
@@ -150,12 +152,12 @@ def size_text(nbytes: float) -> str:
 
 
 #: Photons stored per caustic photon emitted, assumed before tracing: a caustic path stores
-#: one photon where it lands after a mirror or glass, and ends there, and most paths meet
-#: none (measured: 0.02 in caustic_glass, 0.05 in glossy_spheres with glossy = trace, 0.07
+#: one photon where it lands after a mirror or glass and ends there, so this is the most it
+#: stores (where every path leaves the light through glass); most paths meet no mirror or
+#: glass (measured: 0.02 in caustic_glass, 0.05 in glossy_spheres with glossy = trace, 0.07
 #: in the Cornell box, the same with final gathering, whose caustic paths go on past their
-#: landings; up to 1 where every path leaves the light through glass). As for the
-#: global maps, the measured ratio replaces it while the first wave is traced.
-ASSUMED_CAUSTIC_STORED_PER_EMITTED = 0.1
+#: landings). As for the global maps, the measured ratio replaces it once a wave is traced.
+ASSUMED_CAUSTIC_STORED_PER_EMITTED = 1.0
 
 
 def assumed_stored_per_emitted(paths: str, max_depth: int) -> float:
@@ -211,9 +213,10 @@ def estimate_render(photon_count: int, max_depth: int, width: int, height: int, 
 def check_fits(estimate: MemoryEstimate, what: str = "this render",
                option: str = "photon_count",
                more: str = ", raise map_count (smaller maps make smaller waves), or lower "
-                           "max_depth"):
+                           "max_depth", waves: bool = True):
     """Raise :class:`MemoryGuardError` when ``estimate`` exceeds the free memory. The
-    message says to lower ``option`` (what sets the photons), or what ``more`` adds."""
+    message says to lower ``option`` (what sets the photons; per wave with ``waves``), or
+    what ``more`` adds, or the eye samples."""
     free = available_bytes()
     if free is None or estimate.total <= free:
         return
@@ -230,8 +233,9 @@ def check_fits(estimate: MemoryEstimate, what: str = "this render",
     raise MemoryGuardError(
         f"{what} needs about {estimate.describe()}, but only {size_text(free)} are free"
         f"{_share_text()}: "
-        f"lower {option} (to about {int(estimate.photons * fraction * 0.9):,} per wave "
-        f"here){more}, or the resolution / spp (the eye pass takes "
+        f"lower {option} (to about {int(estimate.photons * fraction * 0.9):,}"
+        f"{' per wave' if waves else ''} here){more}, or the resolution / spp (the eye pass "
+        f"takes "
         f"{size_text(estimate.eye)})")
 
 

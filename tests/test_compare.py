@@ -394,17 +394,18 @@ def test_compare_cli(tmp_path, capsys):
     assert "--photons must be an integer in [2, " in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("photons, maps", [(7, 4), (15, 8), (8, 4)])
+@pytest.mark.parametrize("photons, maps", [(7, 4), (15, 8), (8, 4), (11, 5), (9, 5)])
 def test_the_best_configuration_splits_its_photons_only_when_every_map_gets_one(photons,
                                                                                  maps):
     """Half the budget goes to the caustic maps only when both halves have a photon per map
     (7 photons in 4 maps split 4 + 3 and the global partpm refused its 4 maps)."""
-    from mi_partpm.experiments.compare import CompareSettings, best_desc
+    from mi_partpm.experiments.compare import BEST, CompareSettings, best_desc
     desc = best_desc(CompareSettings(photons=photons, maps=maps))
     caustic = desc.get("caustic_photon_count", 0)
     assert desc["photon_count"] + caustic == photons
     assert desc["photon_count"] >= maps and (caustic == 0 or caustic >= maps)
-    assert caustic == (photons // 2 if photons >= 2 * maps else 0)
+    half = round(photons * BEST["caustic_share"])
+    assert caustic == (half if min(half, photons - half) >= maps else 0)
     mi.load_dict(desc)                             # the plugin takes it
 
 

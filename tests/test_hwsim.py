@@ -885,11 +885,27 @@ def test_hwsim_cli_points_at_the_workloads_folder_and_refuses_a_file_as_out(tmp_
     taken = tmp_path / "taken"
     taken.write_text("")
     assert main(["hwsim", str(tmp_path / "workloads"), "--out", str(taken)]) == 2
-    assert f"--out '{taken}' cannot be made: '{taken}' is a file" in capsys.readouterr().err
-    # A folder that cannot be made is refused before the workloads are read and simulated.
-    assert main(["hwsim", str(tmp_path / "nowhere"), "--out", str(taken / "sub")]) == 2
-    assert f"--out '{taken / 'sub'}' cannot be made: '{taken}' is a file, not a folder" in \
-        capsys.readouterr().err
+    assert f"the output folder {taken} is a file" in capsys.readouterr().err
+
+
+def test_hwsim_cli_refuses_an_out_folder_it_cannot_write_before_simulating(tmp_path, capsys,
+                                                                          monkeypatch):
+    """A folder that exists but cannot be written to was found only when the report was
+    written, after the whole simulation."""
+    from mi_partpm.cli import main
+    import hwsim.report as report
+    workloads = str(_synthetic_dir(tmp_path))
+    simulated = []
+    monkeypatch.setattr(report, "_per_n", lambda *a: simulated.append(1) or ([], {}))
+    real = Path.write_bytes
+
+    def refuse(self, data):
+        if self.parent == tmp_path / "ro":
+            raise PermissionError(13, "Permission denied")
+        return real(self, data)
+    monkeypatch.setattr(Path, "write_bytes", refuse)
+    assert main(["hwsim", workloads, "--out", str(tmp_path / "ro")]) == 2
+    assert "the output folder" in capsys.readouterr().err and not simulated
 
 
 def test_hwsim_cli_names_a_workload_file_that_is_not_one(tmp_path, capsys):

@@ -145,7 +145,7 @@ def test_a_render_with_a_sample_count_of_0_is_refused_not_a_crash():
     (["figures", "--only", "hwsim", "--out", "{tmp}/file/out"],
      r"--out '.*/file/out' cannot be made: '.*/file' is a file, not a folder"),
     (["hwsim", "{tmp}/workloads", "--out", "{tmp}/file/out"],
-     r"--out '.*/file/out' cannot be made: '.*/file' is a file, not a folder"),
+     r"the output folder .*/file/out cannot be made or written: Not a directory"),
     # Sizes the experiments met only inside a render (a traceback, exit status 1).
     (["compare", "cornell_box", "--resolution", "32x32", "--spp", "100000000", "--out",
       "{tmp}/new"], r"--resolution 32x32 at --spp 100000000 has 102,400,000,000 samples, "

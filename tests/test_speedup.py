@@ -143,9 +143,10 @@ def test_speedup_and_calibrate_stop_an_oversize_request_before_tracing(command, 
     monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "50e6")
     assert main([command, "cornell_box", "--maps", "1,2", "--photons", "2000000",
                  "--resolution", "16x16", "--out", str(tmp_path)]) == 2
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert "--photons 2000000 needs about" in err and "lower --photons (to about" in err
-    assert "tracing" not in err and "max_depth" not in err and "map_count" not in err
+    assert "tracing" not in out and "max_depth" not in err and "map_count" not in err
+    assert "per wave" not in err                      # they trace in one go
 
 
 CALIBRATE_TINY = ["--leaf-sizes", "4,16", "--radius-fractions", "0.05,0.1", "--maps", "1,2",
@@ -281,6 +282,9 @@ def test_calibrate_cli_errors(tmp_path, capsys):
                  "--radius-fractions", "0.05", "--photons", "2000", "--out",
                  str(tmp_path)]) == 2
     assert "--maps lists 1 more than once" in capsys.readouterr().err
+    assert main(["calibrate", "cornell_box", "--maps", "1,1", "--leaf-sizes", "8",
+                 "--radius-fractions", "0.05", "--out", str(tmp_path)]) == 2
+    assert "--maps lists 1 more than once" in capsys.readouterr().err   # not "give more"
     assert main(["calibrate", "--out", str(tmp_path)]) == 2
     assert "calibrate needs SCENE" in capsys.readouterr().err
     assert main(["calibrate", "--refit", "--out", str(tmp_path)]) == 2

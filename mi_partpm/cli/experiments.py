@@ -131,7 +131,8 @@ def run_calibrate(args) -> int:
         if not all(0 < f <= 1 for f in fracs) or len(set(fracs)) < len(fracs):
             raise UsageError(f"--radius-fractions must be distinct numbers in (0, 1], got "
                              f"{args.radius_fractions!r}")
-        leaves, maps = int_list("--leaf-sizes", args.leaf_sizes), int_list("--maps", args.maps)
+        leaves = int_list("--leaf-sizes", args.leaf_sizes)
+        maps = int_list("--maps", args.maps, distinct=True)
         photons = int_list("--photons", args.photons)
         if max(photons) > MAX_RUN:
             raise UsageError(f"--photons must be counts in [1, 2^32), got {max(photons)}")

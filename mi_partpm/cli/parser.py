@@ -210,7 +210,8 @@ def _experiment_options(sub):
                                        "time vs the number of maps (figures 5-6)")
     e.add_argument("scene", help="built-in scene name or Mitsuba XML file")
     e.add_argument("--maps", default="1,2,4,8,16,32",
-                   help="comma-separated map counts n (default 1,2,4,8,16,32)")
+                   help="comma-separated map counts n, 1 among them (the speedup is against "
+                        "one map; default 1,2,4,8,16,32)")
     _size_options(e, spp=1, repeats=3, repeats_help="timed passes over every map")
     e.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
                    default=0.05, help="r as a fraction of the scene's longest side (0.05)")

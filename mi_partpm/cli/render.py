@@ -203,7 +203,7 @@ def run_render(args) -> int:
     if not args.output:
         raise UsageError("render needs -o OUT.exr")
     # --backend says where the integrator runs, not what it is: alone, it moves a scene
-    # file's own partpm onto the ranks.
+    # file's own partpm onto the ranks (mpi) or into this process (local).
     given = _given_options(args)
     from_file = args.scene is not None and scene_file_integrator(args.scene)
     if from_file and given:
@@ -407,9 +407,10 @@ def _checkpoints(every: int, out: Path, integrator, film):
 def _write(args, out: Path, image, film, stats: dict, seconds: dict, integrator):
     from ..experiments.provenance import code_version
     if args.stats_json:
+        ran_on = getattr(getattr(integrator, "backend", None), "name", "local")
         write_atomic(args.stats_json, lambda name: Path(name).write_text(json.dumps(
             {"time_load": seconds["load"], "time_render": seconds["render"],
-             "scene": args.scene, "integrator": args.integrator, "backend": getattr(getattr(integrator, "backend", None), "name", "local"),
+             "scene": args.scene, "integrator": args.integrator, "backend": ran_on,
              "resolution": list(film.size()), "code": code_version(), **stats}, indent=2,
             default=str) + "\n"))
     _write_image(out, image, film)

@@ -186,29 +186,34 @@ def run_compare(settings: CompareSettings, out_dir, progress=print) -> dict:
     radius = fixed_radius(scene, None, s.radius_fraction)
     common = {"photon_count": s.photons, "seed": s.seed, "direct": s.direct}
     k, calibrated_r = s.k, None
-    steps = 5 if s.best else 4
+    names = (["k"] if k is None else []) + ["pm", "partpm"] + \
+        (["best"] if s.best else []) + ["path"]
+    steps = len(names)
+
+    def step(name):
+        return f"[{names.index(name) + 1}/{steps}]"
     if k is None:
-        say(f"[1/{steps}] calibrating k: mean kNN radius close to r = {radius:.4g} ...")
+        say(f"{step('k')} calibrating k: mean kNN radius close to r = {radius:.4g} ...")
         maps = mi.load_dict({"type": "pm", **common, "k": 2}).build_maps(scene)
         k, calibrated_r = calibrate_k(maps, first_hits(
             scene, spp=1, seed=s.seed, max_depth=1, limit=CALIBRATION_POINTS)[0].p, radius)
         del maps
         say(f"      k = {k} (mean kNN radius {calibrated_r:.4g} at the camera's hits)")
 
-    say(f"[2/{steps}] pm: one map, {s.photons} photons, k = {k} ...")
+    say(f"{step('pm')} pm: one map, {s.photons} photons, k = {k} ...")
     img_pm, pm, t_pm = _render(scene, {"type": "pm", **common, "k": k}, s.seed)
-    say(f"[3/{steps}] partpm: {s.maps} maps, r = {radius:.4g} ...")
+    say(f"{step('partpm')} partpm: {s.maps} maps, r = {radius:.4g} ...")
     img_part, part, t_part = _render(
         scene, {"type": "partpm", **common, "map_count": s.maps,
                 "radius_fraction": s.radius_fraction}, s.seed)
     images = {"pm": img_pm, "partpm": img_part}
     seconds = {}
     if s.best:
-        say(f"[4/{steps}] partpm, best configuration: {best_desc(s)} ...")
+        say(f"{step('best')} partpm, best configuration: {best_desc(s)} ...")
         images["partpm_best"], best, seconds["partpm_best"] = _render(scene, best_desc(s),
                                                                       s.seed)
         seconds["partpm_best_estimate"] = best.stats["time_estimate"]
-    say(f"[{steps}/{steps}] path reference: {s.reference_spp} spp ...")
+    say(f"{step('path')} path reference: {s.reference_spp} spp ...")
     img_ref, t_ref = path_in_chunks(scene, s.reference_spp, s.seed + 1, REFERENCE_CHUNK_SPP,
                                     say=say, label="      path")
     images["reference"] = img_ref

@@ -81,7 +81,7 @@ class ConvergeSettings:
         if self.radius_fraction is not None:
             check_float("radius_fraction", self.radius_fraction, low=0.0, high=1.0)
         check_float("alpha", self.alpha, low=0.0, high=1.0, high_open=True)
-        check_int("k", self.k, low=1)
+        check_int("k", self.k, low=2)               # pm's k nearest photons
         check_int("reference_spp", self.reference_spp, low=1)
         unknown = [m for m in self.methods if m not in METHODS]
         if unknown or not self.methods:

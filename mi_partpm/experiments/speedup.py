@@ -44,8 +44,8 @@ from ..scenes import load_scene
 from ..timing import timed
 from ..trace import trace_photons
 
-__all__ = ["run_speedup", "check_speedup", "format_speedup", "plot_speedup", "gather_bound", "gather_excess",
-           "GatherError", "build_maps", "time_map", "map_counts", "map_workloads"]
+__all__ = ["run_speedup", "check_speedup", "format_speedup", "plot_speedup", "gather_bound",
+           "gather_excess", "GatherError", "build_maps", "time_map", "map_counts", "map_workloads"]
 
 log = logging.getLogger("mi_partpm")
 
@@ -169,7 +169,7 @@ def _setup(scene_name, photons, streams, resolution, spp, radius_fraction, seed,
         estimate = memory.estimate_render(photons, -1, width, height, spp, stored_per_emitted)
         memory.check_fits(estimate, f"--photons {photons}" + (
             f" (projected from the first {done:,} photons traced)" if done else ""),
-            option="--photons", more="")
+            option="--photons", more="", waves=False)
     fits()
     say(f"tracing {photons} photons into {streams} streams ...")
     traced = trace_photons(scene, photons, streams, seed, memory_check=fits)
