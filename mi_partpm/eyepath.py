@@ -301,8 +301,13 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     if trace and unsplit is None:
         unsplit = unsplit_bsdfs(scene)
     splits = []
-    valid = dr.zeros(mi.Bool, width)
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
+    # As Mitsuba's path: a ray is valid (alpha 1) once it meets a surface where it does not
+    # pass straight through (a null lobe: null, mask, thindielectric's transmission), or from
+    # the start where it sees a visible environment. ``passing``: lanes that met no such
+    # surface yet; with hide_emitters the environment they see stays hidden.
+    valid = active & (not hide_emitters and scene.environment() is not None)
+    passing = mi.Bool(active)
     ctx_delta = lobe_context(mi.BSDFFlags.Delta)
     # The last glossy surface of each path and the pdf of the direction sampled there (0:
     # the path came from the camera or a delta lobe, its emission needs no MIS weight).
@@ -322,16 +327,14 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0 and prev is None, active)
         if depth == 0 and hide_emitters:
             si = _past_area_emitters(scene, ray, si, active)
-        if depth == 0:
-            # As Mitsuba's path: a ray that sees a visible environment is valid too (alpha 1).
-            valid = active & (si.is_valid() | (not hide_emitters and
-                                               scene.environment() is not None))
         # Emission seen by the camera, directly or through delta (or sampled glossy) bounces.
         emitter = si.emitter(scene, active)
         show = active & (emitter != None)   # noqa: E711
         if depth == 0 and hide_emitters:
             # None left (past_area_emitters): the camera sees no emitter.
             show = mi.Bool(False) & show
+        elif hide_emitters:                 # nor the environment past null lobes alone
+            show &= si.is_valid() | ~passing
         mis = _emission_mis(scene, prev_si, prev_pdf, si, show) if trace else 1.0
         L = _add_light(L, dr.select(show, beta * emitter.eval(si, show) * mis, 0.0) * emission,
                        lanes)
@@ -393,6 +396,10 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
             prev_si = dr.select(glossy_sampled, si, prev_si)
             prev_pdf = dr.select(glossy_sampled, bs.pdf, 0.0)
             dr.eval(prev_si, prev_pdf)
+        # A hit is met (the ray valid) unless the path passed straight through it.
+        met = active & ~(follow & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null))
+        valid = _or_lanes(valid, met, lanes)
+        passing &= ~met
         beta *= weight
         ray = si.spawn_ray(si.to_world(bs.wo))
         follow &= dr.any(beta != 0)
@@ -403,7 +410,7 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
             follow &= survive
         active = follow
         wavefront.schedule_state()
-        dr.eval(L, beta, valid, active, ray)
+        dr.eval(L, beta, valid, passing, active, ray)
         depth += 1
         at_work = int(dr.count(active)[0])
         if at_work == 0:
@@ -411,6 +418,7 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
         if at_work <= dr.width(active) * COMPACT_SHARE:
             keep = dr.compress(active)
             ray, beta = dr.gather(mi.Ray3f, ray, keep), dr.gather(mi.Spectrum, beta, keep)
+            passing = dr.gather(mi.Bool, passing, keep)
             if trace:
                 prev_si = dr.gather(mi.SurfaceInteraction3f, prev_si, keep)
                 prev_pdf = dr.gather(mi.Float, prev_pdf, keep)
@@ -418,7 +426,7 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
             lanes = _lanes_of(keep, lanes)
             active = dr.full(mi.Bool, True, at_work)
             sampler = _LaneSampler(wavefront, lanes, width)
-            dr.eval(ray, beta, lanes)
+            dr.eval(ray, beta, passing, lanes)
     for depth_at, si, beta_at, lanes in splits:
         L = _split_paths(scene, si, beta_at, lanes, depth_at, limit, bounded, rr_depth, nee,
                          emission, glossy_samples, seed, L, parts, ctx_traced, unsplit)
@@ -438,6 +446,14 @@ def _lanes_of(index, lanes):
     """The wavefront lanes of ``index`` (positions among the lanes at work, ``lanes``; None:
     all lanes, in order)."""
     return index if lanes is None else dr.gather(mi.UInt32, lanes, index)
+
+
+def _or_lanes(mask, value, lanes):
+    """``mask`` (per wavefront lane) or'ed with ``value`` (per lane at work)."""
+    if lanes is None:
+        return mask | value
+    dr.scatter(mask, True, lanes, value)
+    return mask
 
 
 def _add_light(L, value, lanes):
