@@ -278,21 +278,15 @@ class PhotonMapper(mi.SamplingIntegrator):
         layers = self._layers if layers is None else layers
         return sum(map_sizes(l.photon_count, self.map_count) for l in layers)
 
-    def _stored_ratio(self, maps=None, tracing=None):
-        """Photons stored per photon emitted over the layers of ``maps`` (default: every map
-        this process owns), each layer's emitted photons weighted by its own ratio: measured
-        in an earlier wave (or, for the layer being traced, ``tracing = (name, ratio)`` so
-        far), else assumed (:func:`~mi_partpm.memory.assumed_stored_per_emitted`: a caustic
-        path stores one photon where it lands, a global one about three). None where every
-        layer is assumed to hold the global assumption."""
-        if not self._layers:
-            self._layers = self.layers()
-        maps = self.backend.owned_maps(self.map_count) if maps is None else maps
+    def _stored_ratio(self, maps, tracing=None):
+        """Photons stored per photon emitted over the layers of ``maps``, each layer's
+        emitted photons weighted by its own ratio: measured in an earlier wave (or, for the
+        layer being traced, ``tracing = (name, ratio)`` so far), else assumed
+        (:func:`~mi_partpm.memory.assumed_stored_per_emitted`: a caustic path stores one
+        photon where it lands, a global one about three)."""
         measured = dict(self._stored_per_emitted)
         if tracing is not None:
             measured[tracing[0]] = tracing[1]
-        if not measured and all(l.paths != "caustic" for l in self._layers):
-            return None
         emitted = stored = 0.0
         for layer in self._layers:
             e = float(map_sizes(layer.photon_count, self.map_count)[maps].sum())
@@ -328,29 +322,31 @@ class PhotonMapper(mi.SamplingIntegrator):
         counts = [l.photon_count for l in self._layers]
         return max(counts) / sum(counts) if sum(counts) else 1.0
 
+    def _count_props(self) -> list:
+        """(prop, value) of each layer's photon count, for the memory guard's messages:
+        photon_count, and caustic_photon_count with caustic maps."""
+        return [("photon_count" if l.name == "global" else f"{l.name}_photon_count",
+                 l.photon_count) for l in self._layers]
+
     def _photons_text(self) -> str:
-        """The props that set the photons, for the memory guard's messages."""
-        caustic = [l for l in self._layers if l.name != "global"]
-        return f"photon_count = {self.params.photon_count}" + "".join(
-            f", {l.name}_photon_count = {l.photon_count}" for l in caustic)
+        """The props that set the photons and their values."""
+        return ", ".join(f"{prop} = {value}" for prop, value in self._count_props())
 
     def _photons_option(self) -> str:
         """What to lower: photon_count, or its sum with the caustic maps' photons."""
-        names = [f"{l.name}_photon_count" if l.name != "global" else "photon_count"
-                 for l in self._layers]
-        return " + ".join(names) if len(names) > 1 else "photon_count"
+        return " + ".join(prop for prop, _ in self._count_props())
 
     def _tracing_guard(self, scene, sensor, spp, maps, layer):
         """The check repeated while ``layer``'s wave is traced, with its measured photons
         stored per photon emitted: does the wave still fit?"""
         width, height, samples = self._eye_size(scene, sensor, spp)
         emitted = int(self._emitted_per_map()[maps].sum())
-        depth = self._photon_depth()
+        depth, share = self._photon_depth(), self._batch_share()
 
         def check_during(ratio, done):
             wave_ratio = self._stored_ratio(maps, tracing=(layer.name, ratio))
             estimate = memory.estimate_render(emitted, depth, width, height, samples,
-                                              wave_ratio, batch_share=self._batch_share())
+                                              wave_ratio, batch_share=share)
             memory.check_fits(estimate, f"{self._photons_text()} (projected from the first "
                                         f"{done:,} photons traced)",
                               option=self._photons_option())

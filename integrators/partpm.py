@@ -358,13 +358,16 @@ class PartPMIntegrator(PhotonMapper):
             else f"radius_fraction = {self.radius_fraction}"
         passes = "until time_limit" if self.passes == UNTIL_TIME_LIMIT else self.passes
         caustic = ""                    # the caustic maps' radius, when they are on
-        if self.caustic_photon_count:
-            caustic = f", caustic_radius = {self.caustic_radius}" \
-                if self.caustic_radius is not None else \
-                f", caustic_radius_fraction = {self.caustic_radius_fraction}" \
-                if self.caustic_radius_fraction is not None else \
-                f", caustic_radius = {p.radius / 4:g}" if p.radius is not None else \
-                f", caustic_radius_fraction = {self.radius_fraction / 4:g}"
+        if not self.caustic_photon_count:
+            pass
+        elif self.caustic_radius is not None:
+            caustic = f", caustic_radius = {self.caustic_radius}"
+        elif self.caustic_radius_fraction is not None:
+            caustic = f", caustic_radius_fraction = {self.caustic_radius_fraction}"
+        elif p.radius is not None:      # a quarter of the global radius, as the render uses
+            caustic = f", caustic_radius = {p.radius / 4:g}"
+        else:
+            caustic = f", caustic_radius_fraction = {self.radius_fraction / 4:g}"
         return (f"PartPMIntegrator[photon_count = {p.photon_count}, map_count = "
                 f"{self.map_count}, {radius}, passes = {passes}, alpha = {self.alpha}, "
                 f"time_limit = {self.time_limit}, caustic_photon_count = "

@@ -221,9 +221,8 @@ def test_a_rank_that_cannot_parse_its_arguments_ends_the_job(tmp_path):
     assert done.returncode == 2 and "unrecognized arguments: --bogus" in done.stderr
 
 
-def test_a_scene_files_mpi_integrator_renders_on_the_ranks(tmp_path):
-    """The scene file's own partpm with backend = mpi is what runs on the ranks (no command
-    line option needed)."""
+def _mpi_partpm_scene(tmp_path):
+    """A scene file whose partpm (2 maps of 2,000 photons) says backend = mpi."""
     xml = tmp_path / "mpi.xml"
     xml.write_text('<scene version="3.0.0"><integrator type="partpm"><integer '
                    'name="photon_count" value="2000"/><integer name="map_count" value="2"/>'
@@ -232,6 +231,13 @@ def test_a_scene_files_mpi_integrator_renders_on_the_ranks(tmp_path):
                    'value="8"/></film></sensor><shape type="sphere"><emitter type="area"/>'
                    '</shape><shape type="rectangle"><transform name="to_world"><translate '
                    'z="-3"/><scale value="5"/></transform></shape></scene>')
+    return xml
+
+
+def test_a_scene_files_mpi_integrator_renders_on_the_ranks(tmp_path):
+    """The scene file's own partpm with backend = mpi is what runs on the ranks (no command
+    line option needed)."""
+    xml = _mpi_partpm_scene(tmp_path)
     done = _mpi(2, "-m", "mi_partpm.cli", "render", str(xml), "-o", str(tmp_path / "s.exr"),
                 timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
@@ -242,14 +248,7 @@ def test_backend_local_overrides_a_scene_files_mpi_partpm(tmp_path):
     """--backend local runs a scene file's partpm with backend = mpi in this one process (it
     used to stay on the MPI backend, a job of one rank); the stats name the backend that ran
     (they named the command line's default)."""
-    xml = tmp_path / "mpi.xml"
-    xml.write_text('<scene version="3.0.0"><integrator type="partpm"><integer '
-                   'name="photon_count" value="2000"/><integer name="map_count" value="2"/>'
-                   '<string name="backend" value="mpi"/></integrator><sensor type="perspective">'
-                   '<film type="hdrfilm"><integer name="width" value="8"/><integer name="height" '
-                   'value="8"/></film></sensor><shape type="sphere"><emitter type="area"/>'
-                   '</shape><shape type="rectangle"><transform name="to_world"><translate '
-                   'z="-3"/><scale value="5"/></transform></shape></scene>')
+    xml = _mpi_partpm_scene(tmp_path)
     for given, ran in ((["--backend", "local"], "local"), ([], "mpi")):
         assert main(["render", str(xml), *given, "-o", str(tmp_path / "s.exr"),
                      "--stats-json", str(tmp_path / "s.json")]) == 0

@@ -89,18 +89,14 @@ def radius_float(name):
                                                        high=MAX_RADIUS, low_open=False))
 
 
-def int_list(option, text, distinct=False):
-    """'1,2,4' -> [1, 2, 4], every value >= 1 (and none twice with ``distinct``)."""
+def int_list(option, text):
+    """'1,2,4' -> [1, 2, 4], every value >= 1."""
     try:
         values = [int(v) for v in text.split(",")]
     except ValueError:
         values = []
     if not values or min(values) < 1:
         raise UsageError(f"{option} must be comma-separated integers >= 1, got {text!r}")
-    twice = sorted({n for n in values if values.count(n) > 1})
-    if distinct and twice:
-        raise UsageError(f"{option} lists {', '.join(map(str, twice))} more than once: give "
-                         f"each once")
     return values
 
 

@@ -132,10 +132,13 @@ def run_calibrate(args) -> int:
             raise UsageError(f"--radius-fractions must be distinct numbers in (0, 1], got "
                              f"{args.radius_fractions!r}")
         leaves = int_list("--leaf-sizes", args.leaf_sizes)
-        maps = int_list("--maps", args.maps, distinct=True)
+        maps = int_list("--maps", args.maps)
         photons = int_list("--photons", args.photons)
         if max(photons) > MAX_RUN:
             raise UsageError(f"--photons must be counts in [1, 2^32), got {max(photons)}")
+        from ..experiments.speedup import check_maps
+        with user_errors(in_settings):          # a count twice, before the fit's size
+            check_maps(maps, MAX_RUN)           # the list alone: the photons come later
         check_eye_pass(args.resolution, args.spp)
         if args.check and not Path(args.check).is_dir():
             raise UsageError(f"--check {args.check!r} is not a folder (an earlier "

@@ -125,7 +125,7 @@ def run_calibrations(scene_names: Sequence[str], out_dir,
     per scene."""
     import drjit as dr
 
-    from .speedup import _check, _setup, build_maps
+    from .speedup import _setup, build_maps, check_maps
     from ..photonmap import fixed_radius
     names = list(scene_names)
     if not names:
@@ -142,7 +142,7 @@ def run_calibrations(scene_names: Sequence[str], out_dir,
         raise ValueError("--check compares one scene with an earlier run: with several "
                          "scenes, each already predicts the others")
     leaves, fracs = check_grid(leaf_sizes, radius_fractions)
-    checked = [_check(maps_list, n, repeats) for n in counts_]
+    checked = [check_maps(maps_list, n, repeats) for n in counts_]
     maps_list, lcms = checked[0][0], [lcm for _, lcm in checked]
     if threads is not None and (not isinstance(threads, int) or threads < 1):
         raise ValueError(f"--threads must be an integer >= 1, got {threads!r}")

@@ -44,8 +44,9 @@ from ..scenes import load_scene
 from ..timing import timed
 from ..trace import trace_photons
 
-__all__ = ["run_speedup", "check_speedup", "format_speedup", "plot_speedup", "gather_bound",
-           "gather_excess", "GatherError", "build_maps", "time_map", "map_counts", "map_workloads"]
+__all__ = ["run_speedup", "check_speedup", "check_maps", "format_speedup", "plot_speedup",
+           "gather_bound", "gather_excess", "GatherError", "build_maps", "time_map", "map_counts",
+           "map_workloads"]
 
 log = logging.getLogger("mi_partpm")
 
@@ -129,7 +130,9 @@ class _Setup:
         return dr.width(self.si.p)
 
 
-def _check(maps_list, photons, repeats):
+def check_maps(maps_list, photons, repeats=1):
+    """The sorted map counts and their lcm (the photon streams they need); a ValueError
+    naming --maps (or the repeats) when they cannot be measured."""
     given = [int(n) for n in maps_list]
     maps_list = sorted(set(given))
     if not maps_list or maps_list[0] < 1:
@@ -151,7 +154,7 @@ def _check(maps_list, photons, repeats):
 def check_speedup(maps_list, photons, repeats=1):
     """The sorted map counts of a speedup run and their lcm (the photon streams); a
     ValueError naming the option when they cannot be measured."""
-    maps_list, lcm = _check(maps_list, photons, repeats)
+    maps_list, lcm = check_maps(maps_list, photons, repeats)
     if maps_list[0] != 1:
         raise ValueError(f"--maps must include 1: the speedup is one map's time over n maps' "
                          f"time, got {maps_list}")
