@@ -25,7 +25,7 @@ __all__ = ["available_bytes", "share_memory", "peak_rss_bytes", "MemoryEstimate"
            "check_fits", "assumed_stored_per_emitted", "plan_waves", "wave_budget",
            "MemoryGuardError", "TRACE_BATCH", "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES",
            "EYE_BYTES_PER_SAMPLE", "ASSUMED_STORED_PER_EMITTED",
-           "ASSUMED_CAUSTIC_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES"]
+           "ASSUMED_CAUSTIC_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES", "MORE_MAPS", "LOWER_DEPTH"]
 
 #: Photon paths traced together at most (larger counts run in batches of this size).
 TRACE_BATCH = 1 << 20
@@ -210,10 +210,14 @@ def estimate_render(photon_count: int, max_depth: int, width: int, height: int, 
                           eye=eye_bytes(width, height, spp))
 
 
+#: The guard's advice beside fewer photons: more maps, or a lower max_depth.
+MORE_MAPS = ", raise map_count (smaller maps make smaller waves)"
+LOWER_DEPTH = ", or lower max_depth"
+
+
 def check_fits(estimate: MemoryEstimate, what: str = "this render",
-               option: str = "photon_count",
-               more: str = ", raise map_count (smaller maps make smaller waves), or lower "
-                           "max_depth", waves: bool = True):
+               option: str = "photon_count", more: str = MORE_MAPS + LOWER_DEPTH,
+               waves: bool = True):
     """Raise :class:`MemoryGuardError` when ``estimate`` exceeds the free memory. The
     message says to lower ``option`` (what sets the photons; per wave with ``waves``), or
     what ``more`` adds, or the eye samples."""

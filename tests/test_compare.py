@@ -394,6 +394,18 @@ def test_compare_cli(tmp_path, capsys):
     assert "--photons must be an integer in [2, " in capsys.readouterr().err
 
 
+def test_compare_memory_refusal_names_only_its_own_options(tmp_path, capsys, monkeypatch):
+    """The experiments take the depth from the scene: the memory guard's advice names the
+    options compare has (--photons, --maps), not a --max-depth it has not (it did)."""
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "20e6")
+    assert main(["compare", "cornell_box_diffuse", "--resolution", "16x16", "--photons",
+                 "2000000", "--maps", "2", "--reference-spp", "1", "--no-best", "--out",
+                 str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "lower --photons (to about" in err and "raise --maps" in err
+    assert "max-depth" not in err and "max_depth" not in err
+
+
 @pytest.mark.parametrize("photons, maps", [(7, 4), (15, 8), (8, 4), (11, 5), (9, 5)])
 def test_the_best_configuration_splits_its_photons_only_when_every_map_gets_one(photons,
                                                                                  maps):

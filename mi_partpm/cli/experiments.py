@@ -26,8 +26,12 @@ SETTING_OPTIONS = {"photons": "--photons", "maps": "--maps", "spp": "--spp",
 
 def in_settings(message: str) -> str:
     """A message about a setting of :class:`~mi_partpm.experiments.compare.CompareSettings`
-    or its siblings, or about an integrator's prop, in the options that set them."""
+    or its siblings, or about an integrator's prop, in the options that set them. The
+    experiments take their depth from the scene (no ``--max-depth``): the memory guard's
+    advice to lower it is left out."""
+    from ..memory import LOWER_DEPTH
     from .render import in_options
+    message = message.replace(LOWER_DEPTH, "")
     found = re.match(r"(\w+) must (.*)", message)
     if found and found.group(1) in SETTING_OPTIONS:
         message = f"{SETTING_OPTIONS[found.group(1)]} must {found.group(2)}"
