@@ -15,6 +15,7 @@ NumPy and JSON only: hwsim never imports Mitsuba.
 from __future__ import annotations
 
 import json
+import re
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -218,6 +219,11 @@ def save_workloads(directory, loads: dict, *, scene: str = "synthetic", radius: 
             "l1_bytes": l1_bytes,
             "bytes_per_photon": int(bytes_per_photon), "bytes_per_node": int(bytes_per_node),
             "maps": sorted(loads), "files": {str(n): f"n{n}.npz" for n in sorted(loads)}}
+    # A folder written before with other map counts: their files go, so the folder holds
+    # what its meta.json lists and no stale workload beside it.
+    for old in d.glob("n*.npz"):
+        if re.fullmatch(r"n\d+\.npz", old.name) and int(old.stem[1:]) not in loads:
+            old.unlink()
     for n, w in loads.items():
         np.savez_compressed(d / f"n{n}.npz", nodes_visited=w.nodes_visited,
                             photons_tested=w.photons_tested, photons_found=w.photons_found,

@@ -1101,3 +1101,16 @@ def test_the_cross_check_text_says_whose_maps_each_prediction_table_is_of():
     for fit_on, predicts in (("box", "buddha"), ("buddha", "box")):
         label = lines.index(f"  the fit of {fit_on} on the maps of {predicts}, per set:")
         assert lines[label + 1].split()[0] == "set"
+
+
+def test_saving_workloads_again_leaves_no_stale_map_count(tmp_path):
+    """A folder written with maps 1, 2 and 4, then again with 1 and 2, holds n1 and n2 only,
+    as its meta.json lists (n4.npz stayed beside them); files of other names stay."""
+    from hwsim.calibrate import synthetic_workloads
+    from hwsim.workload import load_workloads, save_workloads
+    folder = tmp_path / "w"
+    save_workloads(folder, synthetic_workloads(maps=(1, 2, 4), queries=20, seed=1))
+    (folder / "notes.npz").write_bytes(b"")
+    save_workloads(folder, synthetic_workloads(maps=(1, 2), queries=20, seed=1))
+    assert sorted(p.name for p in folder.glob("*.npz")) == ["n1.npz", "n2.npz", "notes.npz"]
+    assert sorted(load_workloads(folder)[1]) == [1, 2]
