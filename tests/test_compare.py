@@ -394,16 +394,26 @@ def test_compare_cli(tmp_path, capsys):
     assert "--photons must be an integer in [2, " in capsys.readouterr().err
 
 
-def test_compare_memory_refusal_names_only_its_own_options(tmp_path, capsys, monkeypatch):
+def test_compare_memory_refusal_names_its_own_options_and_leaves_no_folder(tmp_path, capsys, monkeypatch):
     """The experiments take the depth from the scene: the memory guard's advice names the
-    options compare has (--photons, --maps), not a --max-depth it has not (it did)."""
+    options compare has (--photons, --maps), not a --max-depth it has not (it did). The
+    output folder it made for the run is gone with the run (it stayed, empty); a folder
+    that holds a file stays."""
     monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "20e6")
+    out = tmp_path / "new" / "comparison"
     assert main(["compare", "cornell_box_diffuse", "--resolution", "16x16", "--photons",
                  "2000000", "--maps", "2", "--reference-spp", "1", "--no-best", "--out",
-                 str(tmp_path)]) == 2
+                 str(out)]) == 2
     err = capsys.readouterr().err
     assert "lower --photons (to about" in err and "raise --maps" in err
     assert "max-depth" not in err and "max_depth" not in err
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "kept").mkdir()
+    (tmp_path / "kept" / "notes.txt").write_text("mine")
+    assert main(["compare", "cornell_box_diffuse", "--resolution", "16x16", "--photons",
+                 "2000000", "--maps", "2", "--reference-spp", "1", "--no-best", "--out",
+                 str(tmp_path / "kept")]) == 2
+    assert (tmp_path / "kept" / "notes.txt").read_text() == "mine"
 
 
 @pytest.mark.parametrize("photons, maps", [(7, 4), (15, 8), (8, 4), (11, 5), (9, 5)])

@@ -65,8 +65,12 @@ def _main(argv, comm=None) -> int:
     logging.basicConfig(level=logging.ERROR if rank else logging.WARNING
                         if getattr(args, "quiet", False) else logging.INFO,
                         format="%(message)s", stream=sys.stderr)
+    from .common import MADE_FOLDERS, remove_made_folders
+    MADE_FOLDERS.clear()
+    code = 1
     try:
-        return COMMANDS[args.command](args)
+        code = COMMANDS[args.command](args)
+        return code
     except BrokenPipeError:
         # The reader of the output left (partpm ... | head): nothing more to say, and
         # Python's own flush of stdout at exit must not fail again.
@@ -81,3 +85,6 @@ def _main(argv, comm=None) -> int:
             raise
         print("partpm: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if code:                        # failed (an exception leaves code at 1)
+            remove_made_folders()

@@ -13,7 +13,8 @@ from ..props import check_float, check_int
 __all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
            "radius_float", "int_list", "setup", "progress", "last_line", "interrupted",
            "write_atomic", "check_writable", "check_folder", "check_scene_name",
-           "check_variant_name", "check_eye_pass", "user_errors", "MAX_PIXELS"]
+           "check_variant_name", "check_eye_pass", "user_errors", "MAX_PIXELS", "MADE_FOLDERS",
+           "remove_made_folders"]
 
 #: The most pixels a film may have: Mitsuba indexes a film's values (4 or 5 a pixel) with
 #: 32-bit integers (60000 x 60000 failed inside Mitsuba's tensor).
@@ -220,6 +221,24 @@ def _file_on_the_way(path: Path):
     return None
 
 
+#: The outermost folder each :func:`check_folder` of this command made (it was missing).
+MADE_FOLDERS: list = []
+
+
+def remove_made_folders():
+    """Remove the folders :func:`check_folder` made for a command that failed, where they
+    are still empty (folders only): a failed command leaves no empty output folder behind,
+    and nothing it wrote is lost."""
+    for top in reversed(MADE_FOLDERS):
+        for folder in sorted((p for p in [top, *top.rglob("*")] if p.is_dir()),
+                             key=lambda p: len(p.parts), reverse=True):
+            try:
+                folder.rmdir()                   # only an empty folder goes
+            except OSError:
+                pass
+    MADE_FOLDERS.clear()
+
+
 def check_folder(path, option: str):
     """Refuse an output folder that cannot be made or written (a file on its way, no
     permission) before any work, naming ``option``; the folder is made when missing."""
@@ -230,8 +249,11 @@ def check_folder(path, option: str):
     if blocked is not None:
         raise UsageError(f"{option} {str(path)!r} cannot be made: {str(blocked)!r} is a "
                          f"file, not a folder")
+    missing = [part for part in [path, *path.parents] if not os.path.exists(part)]
     try:
         path.mkdir(parents=True, exist_ok=True)
+        if missing:
+            MADE_FOLDERS.append(missing[-1])
         probe = path / f".probe{os.getpid()}"
         probe.write_bytes(b"")
         probe.unlink(missing_ok=True)
