@@ -333,6 +333,12 @@ def test_scaling_command_small(tmp_path, capsys):
         assert main(["scaling", "cornell_box", "--ranks", ranks, "--maps", "4",
                      "--out", str(tmp_path)]) == 2
         assert said in capsys.readouterr().err
+    # Camera samples one wavefront cannot hold are refused before mpiexec starts, in the
+    # command's options (its first launch said "lower spp or the resolution").
+    assert main(["scaling", "cornell_box", "--ranks", "1,2", "--maps", "4", "--resolution",
+                 "16000x16000", "--spp", "64", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "lower --spp or --resolution" in err and "mpiexec" not in err
 
 
 def test_a_failed_scaling_run_is_named_by_the_ranks_own_line():
