@@ -25,7 +25,8 @@ __all__ = ["available_bytes", "share_memory", "peak_rss_bytes", "MemoryEstimate"
            "check_fits", "assumed_stored_per_emitted", "plan_waves", "wave_budget",
            "MemoryGuardError", "TRACE_BATCH", "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES",
            "EYE_BYTES_PER_SAMPLE", "ASSUMED_STORED_PER_EMITTED",
-           "ASSUMED_CAUSTIC_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES", "MORE_MAPS", "LOWER_DEPTH"]
+           "ASSUMED_CAUSTIC_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES", "MORE_MAPS", "LOWER_DEPTH",
+           "FOREST_BYTES_PER_STORED"]
 
 #: Photon paths traced together at most (larger counts run in batches of this size).
 TRACE_BATCH = 1 << 20
@@ -58,6 +59,12 @@ ASSUMED_STORED_PER_EMITTED = 3.0
 #: Waves cost no speed: smaller builds stay in the caches (10^7 photons emitted into 8 maps:
 #: 45.6 s in 2 waves, 50.7 s in one).
 WAVE_BUDGET_BYTES = 3 << 29
+
+#: Bytes per stored photon of a built forest kept beside the traced photons (calibrate keeps
+#: one per leaf size and map count): its records (16), its tree order (4) and its tree (about
+#: 2 with leaves of 32 or more photons), doubled for Dr.Jit's rounding of an allocation to a
+#: power of two.
+FOREST_BYTES_PER_STORED = 44
 
 class MemoryGuardError(MemoryError):
     """The render would need more memory than is free; the message says which prop to lower."""

@@ -144,9 +144,23 @@ def test_speedup_and_calibrate_stop_an_oversize_request_before_tracing(command, 
     assert main([command, "cornell_box", "--maps", "1,2", "--photons", "2000000",
                  "--resolution", "16x16", "--out", str(tmp_path)]) == 2
     out, err = capsys.readouterr()
-    assert "--photons 2000000 needs about" in err and "lower --photons (to about" in err
+    kept = " with 6 forests kept" if command == "calibrate" else ""    # 3 leaf sizes x 2
+    assert f"--photons 2000000{kept} needs about" in err and "lower --photons (to about" in err
     assert "tracing" not in out and "max_depth" not in err and "map_count" not in err
     assert "per wave" not in err                      # they trace in one go
+
+
+def test_calibrate_guard_counts_the_forests_it_keeps(tmp_path, capsys, monkeypatch):
+    """calibrate keeps a forest per leaf size and map count (18 by default) beside the
+    photons: 3 x 10^5 photons pass a guard of one forest in 400 MB and take about 0.9 GB
+    (measured peak: 0.94 GB), so they are refused before tracing, naming the grid."""
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "400e6")
+    assert main(["calibrate", "cornell_box", "--photons", "300000", "--resolution", "16x16",
+                 "--out", str(tmp_path / "c")]) == 2
+    out, err = capsys.readouterr()
+    assert "--photons 300000 with 18 forests kept needs about" in err
+    assert "fewer --leaf-sizes or --maps (a forest is kept for each pair: 3 x 6 here)" in err
+    assert "tracing" not in out
 
 
 CALIBRATE_TINY = ["--leaf-sizes", "4,16", "--radius-fractions", "0.05,0.1", "--maps", "1,2",

@@ -152,7 +152,10 @@ def run_calibrations(scene_names: Sequence[str], out_dir,
     out.mkdir(parents=True, exist_ok=True)
     runs = []
     for name, n_photons, lcm in zip(names, counts_, lcms):
-        s = _setup(name, n_photons, lcm, resolution, spp, fracs[0], seed, data_dir, say)
+        kept = len(leaves) * len(maps_list)
+        s = _setup(name, n_photons, lcm, resolution, spp, fracs[0], seed, data_dir, say, kept,
+                   f", or fewer --leaf-sizes or --maps (a forest is kept for each pair: "
+                   f"{len(leaves)} x {len(maps_list)} here)" if kept > 1 else "")
         radii = {f: fixed_radius(s.scene, None, f) for f in fracs}
         say(f"building {len(leaves)} x {len(maps_list)} forests of {name} (leaf sizes "
             f"{', '.join(map(str, leaves))}; n = {', '.join(map(str, maps_list))}) ...")

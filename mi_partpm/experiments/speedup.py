@@ -25,7 +25,7 @@ import csv
 import json
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -162,7 +162,10 @@ def check_speedup(maps_list, photons, repeats=1):
 
 
 def _setup(scene_name, photons, streams, resolution, spp, radius_fraction, seed, data_dir,
-           say) -> _Setup:
+           say, forests: int = 1, more: str = "") -> _Setup:
+    """The scene, its traced photons and hit points; the memory guard counts ``forests``
+    forests of the photons kept at once (one built at a time), and adds ``more`` to its
+    advice."""
     scene = load_scene(scene_name, resolution=resolution, spp=spp, data_dir=data_dir)
     radius = fixed_radius(scene, None, radius_fraction)
     width, height = resolution
@@ -170,9 +173,12 @@ def _setup(scene_name, photons, streams, resolution, spp, radius_fraction, seed,
     def fits(stored_per_emitted=None, done=None):
         """The memory guard: before tracing, and again with the stored photons measured."""
         estimate = memory.estimate_render(photons, -1, width, height, spp, stored_per_emitted)
+        kept = (forests - 1) * estimate.stored * memory.FOREST_BYTES_PER_STORED
+        estimate = replace(estimate, photon_maps=int(estimate.photon_maps + kept))
         memory.check_fits(estimate, f"--photons {photons}" + (
-            f" (projected from the first {done:,} photons traced)" if done else ""),
-            option="--photons", more="", waves=False)
+            f" (projected from the first {done:,} photons traced)" if done else "") + (
+            f" with {forests} forests kept" if forests > 1 else ""),
+            option="--photons", more=more, waves=False)
     fits()
     say(f"tracing {photons} photons into {streams} streams ...")
     traced = trace_photons(scene, photons, streams, seed, memory_check=fits)
