@@ -297,11 +297,13 @@ class PhotonMapper(mi.SamplingIntegrator):
             emitted, stored = emitted + e, stored + e * ratio
         return stored / emitted if emitted else None
 
-    def plan_waves(self, scene, sensor=0, spp: int = 0) -> list:
-        """The waves of this process's maps (lists of map indices) for the next pass: the
-        memory guard. Raises :class:`~mi_partpm.memory.MemoryGuardError` before any photon is
-        traced when even one map per wave would not fit."""
-        owned = self.backend.owned_maps(self.map_count)
+    def plan_waves(self, scene, sensor=0, spp: int = 0, maps=None) -> list:
+        """The waves of this process's maps (default; or of ``maps``) as lists of map
+        indices, for the next pass: the memory guard. Raises
+        :class:`~mi_partpm.memory.MemoryGuardError` before any photon is traced when even
+        one map per wave would not fit."""
+        owned = self.backend.owned_maps(self.map_count) if maps is None else \
+            np.asarray(maps, dtype=np.int64)
         if not self._layers:
             self._layers = self.layers()
         sizes = self._emitted_per_map()[owned]
@@ -344,6 +346,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         depth, share = self._photon_depth(), self._batch_share()
 
         def check_during(ratio, done):
+            # What this wave measured so far: a wave planned again plans with it.
+            self._stored_per_emitted[layer.name] = ratio
             wave_ratio = self._stored_ratio(maps, tracing=(layer.name, ratio))
             estimate = memory.estimate_render(emitted, depth, width, height, samples,
                                               wave_ratio, batch_share=share)
@@ -526,13 +530,32 @@ class PhotonMapper(mi.SamplingIntegrator):
         if waves is None:
             waves = self.plan_waves(scene, sensor, spp)
         sums = None
-        for wave_index, wave in enumerate(waves):
+        queue, wave_index = list(waves), -1
+        while queue:
+            wave = queue.pop(0)
+            wave_index += 1
             self.wave_index = wave_index
-            if len(waves) > 1:
-                log.info("wave %d of %d: %s of %d", wave_index + 1, len(waves),
+            count = wave_index + 1 + len(queue)
+            if count > 1:
+                log.info("wave %d of %d: %s of %d", wave_index + 1, count,
                          _maps_text(wave), self.map_count)
-            for layer in self._layers:
-                self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave)
+            try:
+                for layer in self._layers:
+                    self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave)
+            except memory.MemoryGuardError:
+                if len(wave) == 1:
+                    raise
+                # Its paths store more photons than the plan assumed, so the wave would not
+                # fit: its maps go into smaller waves, planned with what it measured (the
+                # streams are the same, so are the photons).
+                for layer in self._layers:
+                    layer.maps = None
+                smaller = self.plan_waves(scene, sensor, spp, wave)
+                log.info("the wave of %s stores more photons per photon emitted than "
+                         "planned: traced again in %d waves", _maps_text(wave), len(smaller))
+                queue[:0] = smaller
+                wave_index -= 1
+                continue
             if pass_index == 0 and wave_index == 0:
                 self.before_estimate()
             clock = Stopwatch()
@@ -541,13 +564,13 @@ class PhotonMapper(mi.SamplingIntegrator):
                 arrays += list(term.compute(points, width))
             self._add_stats(time_estimate=clock.lap(*arrays), cpu_estimate=clock.cpu)
             sums = arrays if sums is None else [a + b for a, b in zip(sums, arrays)]
-            if len(waves) > 1:
+            if queue or wave_index:
                 dr.eval(sums)
                 for layer in self._layers:
                     layer.maps = None
         if pass_index == 0:
             self._warn_if_empty(scene)
-        self.stats["waves"] = len(waves)
+        self.stats["waves"] = wave_index + 1
         arrays = self.backend.allreduce(sums, self.stats)
         if pass_index == 0:
             self._warn_if_none_found(terms, arrays, len(points))
