@@ -146,6 +146,11 @@ SMALL = ["render", "cornell_box", "--resolution", "8x8", "--spp", "1", "--photon
      r"2, is 8e-16: .*\(raise --radius-fraction or give --caustic-radius\)"),
     (["render", "cornell_box", "-o", "x.exr", "--stats-json", "/proc/x.json"],
      "--stats-json .* cannot be written"),
+    # The stats in the image's own file: the image replaced them (exit 0, no stats).
+    (["render", "cornell_box", "-o", "x.exr", "--stats-json", "x.png"],
+     r"--stats-json 'x.png' is where -o writes its image \(x.exr and x.png\)"),
+    (["render", "cornell_box", "-o", "x.exr", "--stats-json", "./x.exr"],
+     r"--stats-json './x.exr' is where -o writes its image"),
 ])
 def test_cli_errors_are_one_line(argv, message, capsys):
     assert main(argv) == 2
@@ -231,3 +236,26 @@ def test_cli_quality_options_reach_the_integrator(tmp_path):
 def test_cli_quality_options_name_the_integrators_they_apply_to(argv, message, capsys):
     assert main(["render", "cornell_box", *argv, "-o", "x.exr"]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_an_output_that_cannot_be_replaced_is_a_one_line_error(tmp_path, capsys,
+                                                               monkeypatch):
+    """An output the render could not put in place (replaced by a file the user may not
+    replace since the check) ends in one line and status 2, not a traceback; an existing
+    output that is not writable is refused before the render."""
+    import os
+    from mi_partpm.cli import common
+    out = tmp_path / "a.exr"
+
+    def refuse(source, target):
+        raise PermissionError(1, "Operation not permitted")
+    monkeypatch.setattr(common.os, "replace", refuse)
+    assert main(["render", "cornell_box", *SMALL[2:], "-q", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a.exr' cannot be written: Operation not permitted" in err[0], err
+    assert not list(tmp_path.glob(".*writing*"))
+    monkeypatch.undo()
+    out.write_bytes(b"")
+    monkeypatch.setattr(common.os, "access", lambda path, mode: False)
+    assert main(["render", "cornell_box", *SMALL[2:], "-q", "-o", str(out)]) == 2
+    assert "exists and cannot be replaced" in capsys.readouterr().err

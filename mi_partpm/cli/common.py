@@ -239,6 +239,15 @@ def remove_made_folders():
     MADE_FOLDERS.clear()
 
 
+def _make_folder(path: Path):
+    """Make the folder ``path`` where it is missing, and remember the outermost folder made
+    (:data:`MADE_FOLDERS`)."""
+    missing = [part for part in [path, *path.parents] if not os.path.exists(part)]
+    path.mkdir(parents=True, exist_ok=True)
+    if missing:
+        MADE_FOLDERS.append(missing[-1])
+
+
 def check_folder(path, option: str):
     """Refuse an output folder that cannot be made or written (a file on its way, no
     permission) before any work, naming ``option``; the folder is made when missing."""
@@ -249,11 +258,8 @@ def check_folder(path, option: str):
     if blocked is not None:
         raise UsageError(f"{option} {str(path)!r} cannot be made: {str(blocked)!r} is a "
                          f"file, not a folder")
-    missing = [part for part in [path, *path.parents] if not os.path.exists(part)]
     try:
-        path.mkdir(parents=True, exist_ok=True)
-        if missing:
-            MADE_FOLDERS.append(missing[-1])
+        _make_folder(path)
         probe = path / f".probe{os.getpid()}"
         probe.write_bytes(b"")
         probe.unlink(missing_ok=True)
@@ -284,9 +290,12 @@ def check_writable(path, option: str):
         raise UsageError(f"{option} {str(path)!r} cannot be written: {str(blocked)!r} is a "
                          f"file, not a folder")
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        _make_folder(path.parent)
         if path.is_dir():
             raise UsageError(f"{option} {str(path)!r} is a folder: give a file name")
+        if path.exists() and not os.access(path, os.W_OK):
+            raise UsageError(f"{option} {str(path)!r} exists and cannot be replaced (it is "
+                             f"read-only, or not yours): remove it or give another name")
         # One probe per process: the ranks of an MPI job all check the same output.
         probe = path.with_name(f".{path.name}.probe{os.getpid()}")
         probe.write_bytes(b"")
@@ -306,6 +315,8 @@ def write_atomic(path, write):
     try:
         write(str(temporary))
         os.replace(temporary, path)
+    except OSError as e:             # replaced or removed since it was checked
+        raise UsageError(f"{str(path)!r} cannot be written: {e.strerror or e}") from None
     finally:
         if temporary.exists():
             temporary.unlink()

@@ -189,6 +189,11 @@ def _output_path(args) -> Path:
     check_writable(out.with_suffix(".png"), "-o (its PNG)")
     if args.stats_json is not None:
         check_writable(args.stats_json, "--stats-json")
+        images = {out.resolve(), out.with_suffix(".png").resolve()}
+        if Path(args.stats_json).resolve() in images:
+            raise UsageError(f"--stats-json {args.stats_json!r} is where -o writes its image "
+                             f"({out.name} and {out.with_suffix('.png').name}): give the "
+                             f"stats another name")
     return out
 
 
