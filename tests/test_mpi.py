@@ -219,6 +219,11 @@ def test_a_rank_that_cannot_parse_its_arguments_ends_the_job(tmp_path):
     done = _mpi(2, "-m", "mi_partpm.cli", "render", "cornell_box", "--bogus", "-o",
                 str(tmp_path / "x.exr"), timeout=60)
     assert done.returncode == 2 and "unrecognized arguments: --bogus" in done.stderr
+    # Said once, by rank 0, as the job's other errors are (every rank said it).
+    assert done.stderr.count("partpm render: error") == 1, done.stderr
+    done = _mpi(2, "-m", "mi_partpm.cli", "render", "cornell_box", "--spp", "0", "-o",
+                str(tmp_path / "x.exr"), timeout=60)
+    assert done.returncode == 2 and done.stderr.count("--spp must be") == 1, done.stderr
 
 
 def _mpi_partpm_scene(tmp_path):

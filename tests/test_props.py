@@ -259,3 +259,23 @@ def test_an_output_that_cannot_be_replaced_is_a_one_line_error(tmp_path, capsys,
     monkeypatch.setattr(common.os, "access", lambda path, mode: False)
     assert main(["render", "cornell_box", *SMALL[2:], "-q", "-o", str(out)]) == 2
     assert "exists and cannot be replaced" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["render", "cornell_box", "-o", "x.exr", "--radius_fraction", "0.1"],
+     "partpm render: error: unrecognized arguments: --radius_fraction 0.1 (did you mean "
+     "--radius-fraction?) ('partpm render --help' lists the options)"),
+    (["render", "cornell_box", "-o", "x.exr", "--pass", "2"],
+     "unrecognized arguments: --pass 2 (did you mean --passes?)"),
+    (["compare", "cornell_box", "--out", "x", "--photon", "5"],
+     "partpm compare: error: unrecognized arguments: --photon 5 (did you mean --photons?)"),
+])
+def test_an_unknown_option_is_named_by_its_command_with_the_nearest(argv, said, capsys):
+    """An unknown option is reported by the command it was given to, which lists its
+    options, with the nearest one (the top-level parser reported it, pointing to 'partpm
+    --help', which lists no render option); a prefix of an option is no longer taken for it
+    (``--pass 2`` rendered 2 passes)."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    assert said in capsys.readouterr().err

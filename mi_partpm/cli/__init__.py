@@ -22,6 +22,8 @@ and exit status 2.
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import os
 import sys
@@ -60,8 +62,12 @@ def _main(argv, comm=None) -> int:
     """The command of ``argv``; ``comm``: the MPI job it is a rank of (its errors say which
     rank; ranks other than 0 log only errors: every rank renders the same scene with the
     same options, so their warnings are rank 0's, which speaks for the job)."""
-    args = build_parser().parse_args(argv)
     rank = comm.rank if comm is not None else 0
+    if rank:                        # every rank parses the same words: rank 0 says the error
+        with contextlib.redirect_stderr(io.StringIO()):
+            args = build_parser().parse_args(argv)
+    else:
+        args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.ERROR if rank else logging.WARNING
                         if getattr(args, "quiet", False) else logging.INFO,
                         format="%(message)s", stream=sys.stderr)

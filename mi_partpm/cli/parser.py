@@ -15,7 +15,36 @@ __all__ = ["build_parser"]
 
 class _Parser(argparse.ArgumentParser):
     """argparse's parser whose errors are one line: the error, and where the options are
-    listed (not the whole usage); ``argument --x: --x must ...`` says --x once."""
+    listed (not the whole usage); ``argument --x: --x must ...`` says --x once. An option
+    is taken only by its whole name (argparse took ``--pass 2`` for ``--passes 2``), and an
+    unknown one is reported by the command it was given to, with the nearest of its
+    options (a prop's name, ``--radius_fraction``, suggests ``--radius-fraction``)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def parse_args(self, args=None, namespace=None):
+        values, unknown = self.parse_known_args(args, namespace)
+        if unknown:
+            parser = self
+            for action in self._actions:
+                if isinstance(action, argparse._SubParsersAction):
+                    parser = action.choices.get(getattr(values, action.dest, None), self)
+            parser.error(parser.unknown_message(unknown))
+        return values
+
+    def unknown_message(self, unknown) -> str:
+        import difflib
+        options = [o for action in self._actions for o in action.option_strings]
+        message = f"unrecognized arguments: {' '.join(unknown)}"
+        for word in unknown:
+            if word.startswith("--"):
+                name = word.split("=")[0].replace("_", "-")
+                near = difflib.get_close_matches(name, options, n=1, cutoff=0.6)
+                if near:
+                    return f"{message} (did you mean {near[0]}?)"
+        return message
 
     def error(self, message):
         import re
