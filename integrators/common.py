@@ -365,7 +365,9 @@ class PhotonMapper(mi.SamplingIntegrator):
         self._stored_per_emitted = {}
         self.stats = {"photons_emitted": p.photon_count, "map_count": self.map_count,
                       "radius": self.radius,
-                      "render_seed": render_seed, "passes": 0, "photons_stored": 0,
+                      "render_seed": render_seed, "passes": 0,
+                      "passes_asked": self.passes if self.passes < UNTIL_TIME_LIMIT else None,
+                      "photons_stored": 0,
                       "photons_traced": 0, "segments": 0, "time_trace": 0.0,
                       "time_build": 0.0, "time_eye": 0.0, "time_estimate": 0.0,
                       "cpu_trace": 0.0, "cpu_build": 0.0, "cpu_eye": 0.0,
@@ -641,6 +643,9 @@ class PhotonMapper(mi.SamplingIntegrator):
             # whatever it was told.
             stop = self.backend.agree(stop)
         info["last"] = stop or done == self.passes
+        if stop:                    # why the render has fewer passes than it was given
+            self.stats["stopped_by"] = "time_limit" if timed_out else \
+                "request" if asked else "another_process"
         if self.passes > 1:
             radius = "" if info["mean_radius"] is None else \
                 f", mean radius {info['mean_radius']:.4g}"

@@ -127,6 +127,9 @@ def test_time_limit_stops_after_the_pass_that_reaches_it():
     assert 1 <= done < 100_000 and len(seen) == done
     assert seen[-1] >= 0.5 and (done == 1 or seen[-2] < 0.5)
     assert img.mean() > 0.05
+    # The stats say it was given more passes and why it stopped (they said only "passes").
+    assert integrator.stats["passes_asked"] == 100_000
+    assert integrator.stats["stopped_by"] == "time_limit"
 
 
 def test_a_time_limit_without_passes_runs_passes_until_it():
@@ -138,6 +141,7 @@ def test_a_time_limit_without_passes_runs_passes_until_it():
     render(scene, integrator)
     assert integrator.stats["passes"] == len(seen) > 1
     assert seen[-1] >= 2.0 > seen[-2]
+    assert integrator.stats["passes_asked"] is None      # as many as fit
     # Progressive, so the progressive default radius (1/40 of the box, not 1/20).
     assert integrator.radius_fraction == 0.025
 
@@ -326,6 +330,8 @@ def test_cli_renders_a_scene_file_with_its_own_integrator(tmp_path, capsys, capl
     figures = json.loads(stats.read_text())
     assert (figures["photons_emitted"], figures["map_count"], figures["passes"]) == (3000, 3, 2)
     assert figures["integrator"] == "partpm"     # the plugin name, as --integrator says it
+    assert figures["passes_asked"] == 2 and "stopped_by" not in figures
+    assert figures["options"]["resolution"] == [12, 12] and figures["options"]["maps"] is None
     with caplog.at_level("WARNING", logger="mi_partpm"):
         assert main([*argv, "--maps", "2"]) == 0
     figures = json.loads(stats.read_text())

@@ -416,7 +416,9 @@ def _write(args, out: Path, image, film, stats: dict, seconds: dict, integrator)
         write_atomic(args.stats_json, lambda name: Path(name).write_text(json.dumps(
             {"time_load": seconds["load"], "time_render": seconds["render"],
              "scene": args.scene, "integrator": args.integrator, "backend": ran_on,
-             "resolution": list(film.size()), "code": code_version(), **stats}, indent=2,
+             "resolution": list(film.size()), "code": code_version(),
+             "options": {k: v for k, v in vars(args).items() if k != "command"}, **stats},
+            indent=2,
             default=str) + "\n"))
     _write_image(out, image, film)
 
