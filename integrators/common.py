@@ -593,22 +593,25 @@ class PhotonMapper(mi.SamplingIntegrator):
                   for prefix in prefixes]
         if visible == 0 or not self.backend.reports:
             return
+        # Said after the first pass: of a render of several, of that pass.
+        first, add = (" in the first pass", "added nothing to it") if self.passes > 1 else \
+            ("", "add nothing")
         for j, (term, prefix, stored) in enumerate(zip(terms, prefixes, every)):
             if stored == 0:
                 if prefix:
-                    log.warning("no %s photon was stored of the %d traced: the scene has no "
+                    log.warning("no %s photon was stored of the %d traced%s: the scene has no "
                                 "such light path (for caustics: emitter, mirror or glass, "
                                 "then a diffuse surface), or too few photons were traced to "
-                                "find one (raise %sphoton_count); the %s maps add nothing",
-                                term.name, traced[j], prefix, term.name)
+                                "find one (raise %sphoton_count); the %s maps %s",
+                                term.name, traced[j], first, prefix, term.name, add)
                 continue
             if float(dr.sum(arrays[2 * j + 1])[0]) == 0:
                 r = self.radius if not prefix else self.stats.get(f"{prefix}radius")
                 radius = "" if r is None else f" (radius {r:.4g})"
-                log.warning("no photon was found at any visible point by the %s estimate%s, "
+                log.warning("no photon was found at any visible point by the %s estimate%s%s, "
                             "though %d were stored: the search is far smaller than the "
-                            "photons' spacing, and those maps add nothing", term.name, radius,
-                            stored)
+                            "photons' spacing, and those maps %s", term.name, radius, first,
+                            stored, add)
 
     def _finish(self, terms):
         self.after_estimate()

@@ -196,7 +196,7 @@ def test_a_bad_prop_in_a_scene_file_is_one_line(tmp_path, capsys):
     assert "(line 1, col" in err[0]
 
 
-def test_cli_quality_options_reach_the_integrator(tmp_path):
+def test_cli_quality_options_reach_the_integrator(tmp_path, capsys):
     """--kernel, --caustic-photons, --caustic-radius-fraction, --glossy, --glossy-samples and
     --final-gather become the plugin's props, and a render with them traces the caustic maps
     (their photons and radius are in the figures written by --stats-json)."""
@@ -219,6 +219,9 @@ def test_cli_quality_options_reach_the_integrator(tmp_path):
     assert figures["caustic_photons_stored"] > 0
     assert figures["caustic_radius"] == pytest.approx(0.01 * figures["radius"] / 0.05,
                                                       rel=1e-5)
+    # The summary has a line of the caustic maps too (only the global ones were said).
+    assert f"caustic  4000 emitted, {figures['caustic_photons_stored']} stored, radius " \
+        f"{figures['caustic_radius']:.4g}" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -326,8 +326,18 @@ def test_caustic_maps_default_to_a_quarter_of_an_explicit_radius_and_warn_when_e
     assert "or too few photons were traced to find one (raise caustic_photon_count)" in \
         caplog.text
     assert "no photon was found" not in caplog.text
+    assert "the caustic maps add nothing" in caplog.text
     # The caustic maps' radius is part of what the integrator says it is.
     assert "caustic_photon_count = 2000, caustic_radius = 0.1," in str(integrator)
+    # Of a render of several passes the warning (after the first) speaks of that pass (it
+    # said the maps add nothing, of a render whose later passes may store some).
+    caplog.clear()
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 2000, "radius": 0.4,
+                               "caustic_photon_count": 2000, "passes": 2})
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        render(scene, integrator)
+    assert "no caustic photon was stored of the 2000 traced in the first pass" in caplog.text
+    assert "the caustic maps added nothing to it" in caplog.text
 
 
 @pytest.mark.parametrize("props", [{"type": "partpm", "radius": 1e-9},

@@ -471,6 +471,11 @@ def _summary(stats: dict, seconds: dict, out: Path) -> str:
         lines.append(f"photons  {stats['photons_emitted']} emitted{per_pass}, "
                      f"{stats['photons_stored']} stored in {stats['map_count']} "
                      f"map{'' if stats['map_count'] == 1 else 's'}, {search}")
+        if "caustic_photons_stored" in stats:
+            lines.append(f"caustic  {stats['caustic_photons_traced'] // max(passes, 1)} "
+                         f"emitted{per_pass}, "
+                         f"{stats['caustic_photons_stored']} stored, radius "
+                         f"{stats['caustic_radius']:.4g}")
     if stats.get("ranks"):
         lines.append(format_ranks(stats["ranks"]))
     lines.append(f"wrote    {out} and {out.with_suffix('.png')}")
