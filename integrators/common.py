@@ -477,7 +477,14 @@ class PhotonMapper(mi.SamplingIntegrator):
                               camera.spp, seed, pass_index, waves)
 
             def image(done=pass_index + 1):
-                """The image after this pass (developed into the film)."""
+                """The image after this pass (developed into the film), while it is the
+                last pass done: a later pass adds to the sums it reads."""
+                now = getattr(terms[0].state, "passes", done)
+                if now != done:
+                    raise RuntimeError(
+                        f"info['image']() develops the image after pass {done} only until "
+                        f"the next pass runs (pass {now} has): call it in on_pass and keep "
+                        f"the image it returns")
                 # The pass count is opaque: one kernel serves every checkpoint.
                 scale = dr.rcp(dr.opaque(mi.Float, done))
                 return camera.develop(emitted * scale + _radiance(terms), valid * scale)
@@ -630,7 +637,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         elapsed = time.perf_counter() - start - self._paused
         done = pass_index + 1
         state = terms[0].state
-        info = {"pass": done, "passes": self.passes, "elapsed": elapsed, "image": image,
+        info = {"pass": done, "passes": self.passes if self.passes < UNTIL_TIME_LIMIT else None,
+                "elapsed": elapsed, "image": image,
                 "photons": done * self.params.photon_count,
                 "eta": self._remaining(elapsed, done),
                 "mean_radius": float(dr.mean(dr.sqrt(state.r2))[0])
@@ -646,6 +654,8 @@ class PhotonMapper(mi.SamplingIntegrator):
             # whatever it was told.
             stop = self.backend.agree(stop)
         info["last"] = stop or done == self.passes
+        if info["last"]:
+            info["eta"] = 0.0
         if stop:                    # why the render has fewer passes than it was given
             self.stats["stopped_by"] = "time_limit" if timed_out else \
                 "request" if asked else "another_process"
@@ -670,6 +680,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             # the others, who ask as often whatever their on_pass did).
             if self.backend.agree(self._cancelled):
                 stop = True
+                self.stats["stopped_by"] = "request"
                 log.info("pass %d: stopped as asked", done)
         return stop
 

@@ -178,9 +178,35 @@ def test_mitsubas_cancel_ends_the_render_after_that_pass_and_not_the_next_render
     integrator.on_pass = lambda info: integrator.cancel() if info["pass"] == 2 else None
     img = render(scene, integrator)
     assert integrator.stats["passes"] == 2 and img.mean() > 0.05
+    assert integrator.stats["stopped_by"] == "request"      # (it was left unset)
     integrator.on_pass = None
     render(scene, integrator)
-    assert integrator.stats["passes"] == 5
+    assert integrator.stats["passes"] == 5 and "stopped_by" not in integrator.stats
+
+
+def test_on_pass_info_says_what_it_knows_and_its_image_only_while_current():
+    """on_pass's info: ``passes`` None for as many passes as fit the time limit (it was the
+    2^31 - 1 that stands for them), ``eta`` 0 after the last pass; ``image()`` develops the
+    pass's image while no later pass has run, and after one refuses (it divided the later
+    sums by the pass's count: a brighter, wrong image, without an error)."""
+    scene = mi_partpm.load_scene("cornell_box", resolution=(16, 16), spp=1)
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 2000, "passes": 3})
+    seen = []
+    integrator.on_pass = lambda info: seen.append((info, np.array(info["image"]())))
+    final = render(scene, integrator)
+    assert [info["passes"] for info, _ in seen] == [3, 3, 3]
+    assert seen[-1][0]["last"] and seen[-1][0]["eta"] == 0.0
+    assert np.allclose(np.array(seen[-1][0]["image"]())[..., :3], final)   # still current
+    with pytest.raises(RuntimeError, match=r"after pass 1 only until the next pass runs "
+                                           r"\(pass 3 has\)"):
+        seen[0][0]["image"]()
+    assert abs(seen[0][1][..., :3].mean() - final.mean()) < 0.2 * final.mean()
+    timed = mi.load_dict({"type": "partpm", "photon_count": 2000, "time_limit": 0.3})
+    infos = []
+    timed.on_pass = infos.append
+    render(scene, timed)
+    assert infos and all(info["passes"] is None for info in infos)
+    assert infos[-1]["last"] and infos[-1]["eta"] == 0.0
 
 
 @pytest.mark.parametrize("props, message", [
