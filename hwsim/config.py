@@ -307,9 +307,12 @@ class HardwareConfig:
     def with_(self, **changes) -> "HardwareConfig":
         """A copy with some fields changed (``memory``/``gather``/``energy``/``pe`` fields as
         dicts)."""
+        _from_dict(type(self), changes, "HardwareConfig.with_()")
         for key in ("memory", "gather", "energy", "pe"):
             if isinstance(changes.get(key), dict):
-                changes[key] = replace(getattr(self, key), **changes[key])
+                part = getattr(self, key)
+                _from_dict(type(part), changes[key], f"HardwareConfig.with_({key}=...)")
+                changes[key] = replace(part, **changes[key])
         return replace(self, **changes)
 
 

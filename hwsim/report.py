@@ -126,6 +126,18 @@ def calibration(loads, meta, check_dir=None) -> dict:
         other_index, other = load_workload_sets(check_dir)
         out["other_scene"] = other_index.get("scene", str(check_dir))
         out["other"] = check(f.costs, other)
+        # Costs are CPU seconds per action at the threads that measured them: times
+        # measured with other threads are not comparable (hwsim's configs convert by
+        # threads; the check says so rather than guess the threads' speedup).
+        threads = {s.meta.get("threads") for s in other} - {None}
+        own = meta.get("threads")
+        if own is not None and threads and threads != {own}:
+            out["threads_differ"] = (f"{meta.get('scene', 'this workload')}'s times were "
+                                     f"measured with {own} thread{'s' * (own != 1)}, "
+                                     f"{out['other_scene']}'s with "
+                                     f"{', '.join(map(str, sorted(threads)))}: the check "
+                                     f"compares unlike seconds (measure both with the same "
+                                     f"--threads)")
     return out
 
 
@@ -454,6 +466,8 @@ def _format_calibration(cal) -> str:
     if "other" in cal:
         text += (f"; predicts {cal['other_scene']} with R^2 {cal['other']['r2']:.3f} "
                  f"(largest error {cal['other']['max_rel_error'] * 100:.0f}%)")
+        if "threads_differ" in cal:
+            text += f" [{cal['threads_differ']}]"
     if "design" in cal:
         d = cal["design"]
         text += (f"; design: largest VIF {max(d['vif'].values()):.3g}, condition number "

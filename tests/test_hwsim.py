@@ -1114,3 +1114,34 @@ def test_saving_workloads_again_leaves_no_stale_map_count(tmp_path):
     save_workloads(folder, synthetic_workloads(maps=(1, 2), queries=20, seed=1))
     assert sorted(p.name for p in folder.glob("*.npz")) == ["n1.npz", "n2.npz", "notes.npz"]
     assert sorted(load_workloads(folder)[1]) == [1, 2]
+
+
+def test_the_cross_check_says_when_the_two_were_timed_with_other_threads(tmp_path):
+    """Costs are CPU seconds at the threads that measured them: a check against times taken
+    with other threads (speedup's 2 against calibrate's default 1) compared unlike seconds
+    in silence; the report now says so, and stays quiet where the threads agree."""
+    from hwsim.calibrate import synthetic_workloads
+    from hwsim.report import _format_calibration, calibration
+    from hwsim.workload import load_workloads, save_workloads
+    loads = synthetic_workloads(maps=(1, 2, 4), queries=50, seed=4, noise=CAL_NOISE)
+    save_workloads(tmp_path / "one", loads, scene="a", threads=1)
+    save_workloads(tmp_path / "two", loads, scene="b", threads=2)
+    meta, own = load_workloads(tmp_path / "two")
+    differ = calibration(own, meta, tmp_path / "one")
+    assert differ["threads_differ"].startswith("b's times were measured with 2 threads, a's "
+                                               "with 1: the check compares unlike seconds")
+    assert "[b's times were measured with 2 threads" in _format_calibration(differ)
+    assert "threads_differ" not in calibration(own, meta, tmp_path / "two")
+
+
+def test_config_with_refuses_an_unknown_field_by_name():
+    """HardwareConfig.with_() with a misspelt field raised dataclasses' TypeError; like a
+    TOML file's, it is a ValueError naming the key and the known ones."""
+    from hwsim.config import HardwareConfig
+    with pytest.raises(ValueError, match=r"unknown key in HardwareConfig.with_\(\): clck_hz "
+                                         r"\(known: .*clock_hz"):
+        HardwareConfig().with_(clck_hz=1)
+    with pytest.raises(ValueError, match=r"with_\(memory=...\): sram_byte \(known: .*"
+                                         r"sram_bytes"):
+        HardwareConfig().with_(memory={"sram_byte": 1})
+    assert HardwareConfig().with_(pe_count=4, memory={"sram_bytes": 8}).memory.sram_bytes == 8
