@@ -1145,3 +1145,21 @@ def test_config_with_refuses_an_unknown_field_by_name():
                                          r"sram_bytes"):
         HardwareConfig().with_(memory={"sram_byte": 1})
     assert HardwareConfig().with_(pe_count=4, memory={"sram_bytes": 8}).memory.sram_bytes == 8
+
+
+def test_first_fit_residency_can_read_more_from_dram_with_more_sram():
+    """First fit (the README's rule) is not an optimum, and the README says so with this
+    case: maps of 5000, 2000 and 2000 bytes, as much traffic each, on one PE. 4000 bytes of
+    SRAM hold the two small maps, 5000 the large one alone: twice the DRAM traffic and a
+    slower frame."""
+    from hwsim.workload import MapWorkloads
+    queries = 100
+    counts = np.full((3, queries), 100, np.uint32)
+    w = MapWorkloads(n=3, nodes_visited=counts, photons_tested=np.zeros_like(counts),
+                     photons_found=np.zeros_like(counts), map_photons=np.ones(3, np.int64),
+                     map_bytes=np.array([5000, 2000, 2000], np.int64),
+                     map_seconds=np.zeros((3, 0)), bytes_per_node=8, bytes_per_photon=32)
+    runs = {sram: simulate(HardwareConfig().with_(pe_count=1, memory={
+        "sram_bytes": sram, "dram_bytes_per_cycle": 0.5}), w) for sram in (4000, 5000)}
+    assert runs[5000].dram_bytes.sum() == pytest.approx(2 * runs[4000].dram_bytes.sum())
+    assert runs[5000].frame_cycles > runs[4000].frame_cycles
