@@ -548,6 +548,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             if count > 1:
                 log.info("wave %d of %d: %s of %d", wave_index + 1, count,
                          _maps_text(wave), self.map_count)
+            before = dict(self.stats)
             try:
                 for layer in self._layers:
                     self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave)
@@ -556,12 +557,25 @@ class PhotonMapper(mi.SamplingIntegrator):
                     raise
                 # Its paths store more photons than the plan assumed, so the wave would not
                 # fit: its maps go into smaller waves, planned with what it measured (the
-                # streams are the same, so are the photons).
+                # streams are the same, so are the photons, counted once: a layer done
+                # before the one that stopped is traced again).
+                # (The times spent stay counted.)
+                for key in [k for k in self.stats if not k.startswith(("time_", "cpu_"))]:
+                    if key in before:
+                        self.stats[key] = before[key]
+                    else:
+                        del self.stats[key]
                 for layer in self._layers:
                     layer.maps = None
                 smaller = self.plan_waves(scene, sensor, spp, wave)
+                if max(len(w) for w in smaller) >= len(wave):
+                    # The plan would keep it whole (maps_per_wave, or more memory free once
+                    # its maps are freed): halve it, or it would stop again where it did.
+                    half = (len(wave) + 1) // 2
+                    smaller = [wave[:half], wave[half:]]
                 log.info("the wave of %s stores more photons per photon emitted than "
-                         "planned: traced again in %d waves", _maps_text(wave), len(smaller))
+                         "planned: traced again in %d smaller waves", _maps_text(wave),
+                         len(smaller))
                 queue[:0] = smaller
                 wave_index -= 1
                 continue
@@ -724,8 +738,11 @@ class PhotonMapper(mi.SamplingIntegrator):
         for pass_index in range(self.passes):
             self._photon_pass(scene, terms, eye.points, width, pass_index=pass_index)
             self._add_stats(passes=1)
-            if 0 < self.time_limit <= time.perf_counter() - start or self._cancelled or \
+            timed_out = 0 < self.time_limit <= time.perf_counter() - start
+            if timed_out or self._cancelled or \
                     (self.stop_requested is not None and self.stop_requested()):
+                if pass_index + 1 < self.passes:
+                    self.stats["stopped_by"] = "time_limit" if timed_out else "request"
                 break
         self._finish(terms)
         return eye.emitted + _radiance(terms), eye.valid, []

@@ -181,7 +181,39 @@ def test_a_wave_that_stores_more_than_planned_is_split_not_refused(monkeypatch, 
         with caplog.at_level("INFO", logger="mi_partpm"):
             images.append(render(scene, integrator))
         waves.append(integrator.stats["waves"])
+        assert integrator.stats["photons_traced"] == 100_003     # a retried wave once
     assert "stores more photons per photon emitted than planned" in caplog.text
     assert all(w >= 2 for w in waves), waves
     for img in images[1:]:
         assert np.abs(img - images[0]).max() < 1e-4 * images[0].max()
+
+
+def test_a_wave_stopped_in_its_caustic_layer_is_halved_and_counted_once():
+    """The caustic layer is traced after the global one: a wave stopped there had its
+    global photons counted, then counted again by the smaller waves (photons_traced 2x);
+    and with maps_per_wave the plan gave the same wave back, to stop again where it did.
+    Forced here once: the wave is halved, and the counts and image are the whole wave's."""
+    scene = mi_partpm.load_scene("caustic_glass", resolution=(16, 16), spp=1)
+    desc = {"type": "partpm", "photon_count": 20_000, "caustic_photon_count": 100_000,
+            "map_count": 4, "maps_per_wave": 4}
+    whole = mi.load_dict(desc)
+    expected = render(scene, whole)
+    integrator = mi.load_dict(desc)
+    original, tripped = integrator._tracing_guard, []
+
+    def guard(scene, sensor, spp, maps, layer):
+        check = original(scene, sensor, spp, maps, layer)
+        if layer.name != "caustic" or tripped:
+            return check
+
+        def trip(ratio, done):
+            tripped.append(done)
+            raise MemoryGuardError("forced for the test")
+        return trip
+    integrator._tracing_guard = guard
+    image = render(scene, integrator)
+    assert tripped and integrator.stats["waves"] == 2
+    for key in ("photons_traced", "photons_stored", "caustic_photons_traced",
+                "caustic_photons_stored", "segments"):
+        assert integrator.stats[key] == whole.stats[key], key
+    assert np.abs(image - expected).max() < 1e-4 * expected.max()

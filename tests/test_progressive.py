@@ -505,6 +505,7 @@ def test_cancel_ends_a_progressive_render_inside_a_wrapper_and_its_passes_are_co
         done.set()
         thread.join()
     assert 1 <= inner.stats["passes"] < 100
+    assert inner.stats["stopped_by"] == "request"         # as a top-level render says
 
 @pytest.mark.parametrize("sampler", ["stratified", "multijitter"])
 def test_a_progressive_render_with_a_sample_count_that_is_not_a_power_of_two_ends(sampler):

@@ -142,9 +142,10 @@ def progress(args):
     return None if args.quiet else (lambda line: print(line, flush=True))
 
 
-def check_eye_pass(resolution, spp: int):
+def check_eye_pass(resolution, spp: int, here: bool = True):
     """Refuse, before any work, camera samples (``resolution`` x ``spp``) that one wavefront
-    of 2^32 lanes cannot hold or that alone would not fit the free memory."""
+    of 2^32 lanes cannot hold or (``here``: they run on this machine) that alone would not
+    fit the free memory."""
     from .. import memory
     from ..camera import MAX_WAVEFRONT
     width, height = resolution
@@ -153,6 +154,8 @@ def check_eye_pass(resolution, spp: int):
         raise UsageError(f"--resolution {width}x{height} at --spp {spp} has {samples:,} "
                          f"samples, more than one wavefront of 2^32 holds: lower --spp or "
                          f"--resolution")
+    if not here:
+        return
     try:
         memory.check_fits(memory.estimate_render(0, 1, width, height, spp))
     except memory.MemoryGuardError as e:
@@ -293,9 +296,6 @@ def check_writable(path, option: str):
         _make_folder(path.parent)
         if path.is_dir():
             raise UsageError(f"{option} {str(path)!r} is a folder: give a file name")
-        if path.exists() and not os.access(path, os.W_OK):
-            raise UsageError(f"{option} {str(path)!r} exists and cannot be replaced (it is "
-                             f"read-only, or not yours): remove it or give another name")
         # One probe per process: the ranks of an MPI job all check the same output.
         probe = path.with_name(f".{path.name}.probe{os.getpid()}")
         probe.write_bytes(b"")

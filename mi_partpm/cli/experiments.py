@@ -179,7 +179,9 @@ def run_scaling(args) -> int:
     if args.maps > args.photons:
         raise UsageError(f"--maps {args.maps} is more than --photons {args.photons}: every "
                          f"map needs at least one photon")
-    check_eye_pass(args.resolution, args.spp)        # (inside the first launch, it named spp)
+    # (Its first launch found out, and said spp.) The ranks' memory is theirs to check
+    # where a hostfile runs them on other machines.
+    check_eye_pass(args.resolution, args.spp, here=not args.hostfile)
     check_scene_name(args.scene)
     check_folder(args.out, "--out")
     extra = ["-f", args.hostfile] if args.hostfile else []
