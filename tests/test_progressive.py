@@ -522,3 +522,32 @@ def test_a_progressive_render_with_a_sample_count_that_is_not_a_power_of_two_end
                                       "passes": 3}))
     assert abs(img.mean() / ref.mean() - 1) < 0.1
 
+
+
+CTRL_C_WHILE_LOADING = """
+import os, signal, sys
+class CtrlC:
+    # Ctrl-C as Mitsuba starts to load: inside the command's first imports.
+    def find_spec(self, name, path=None, target=None):
+        if name == "mitsuba":
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+sys.meta_path.insert(0, CtrlC())
+sys.argv = ["partpm", "render", "--list"]
+from importlib.metadata import entry_points
+command = entry_points(group="console_scripts")["partpm"].load()     # what partpm runs
+sys.exit(command())
+"""
+
+
+def test_ctrl_c_while_the_command_loads_ends_it_as_later():
+    """Ctrl-C while Mitsuba and Dr.Jit load (the command's first third of a second) printed
+    Python's traceback from inside their imports (and once stopped Dr.Jit half started):
+    the entry point holds it until they have loaded, then ends as a Ctrl-C does later."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, "-c", CTRL_C_WHILE_LOADING], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 130, done.stderr[-2000:]
+    assert done.stderr.strip() == "partpm: interrupted" and done.stdout == ""
