@@ -551,3 +551,37 @@ def test_ctrl_c_while_the_command_loads_ends_it_as_later():
                           text=True, timeout=120)
     assert done.returncode == 130, done.stderr[-2000:]
     assert done.stderr.strip() == "partpm: interrupted" and done.stdout == ""
+
+
+def test_a_scene_files_includes_hold_its_sensor_and_integrator(tmp_path):
+    """A scene file whose sensor (with $resx, $spp) and integrator are in files it includes,
+    as users split scenes: --resolution and --spp set them (they were refused, the file
+    'does not take $resx'), and with no integrator option the included integrator renders
+    (the command line's partpm replaced it in silence)."""
+    import json
+    parts = tmp_path / "parts"
+    parts.mkdir()
+    (parts / "sensor.xml").write_text(
+        '<scene version="3.0.0"><sensor type="perspective"><transform name="to_world">'
+        '<lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>'
+        '<sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>'
+        '<film type="hdrfilm"><integer name="width" value="$resx"/><integer name="height" '
+        'value="$resy"/></film></sensor></scene>')
+    (parts / "integrator.xml").write_text(
+        '<scene version="3.0.0"><integrator type="pm"><integer name="photon_count" '
+        'value="3000"/><integer name="k" value="12"/></integrator></scene>')
+    main_xml = tmp_path / "main.xml"
+    main_xml.write_text(
+        '<scene version="3.0.0"><default name="spp" value="4"/><default name="resx" '
+        'value="24"/><default name="resy" value="16"/>'
+        '<include filename="parts/integrator.xml"/><include filename="parts/sensor.xml"/>'
+        '<shape type="sphere"><transform name="to_world"><translate y="1.5"/></transform>'
+        '<emitter type="area"/></shape><shape type="rectangle"><transform name="to_world">'
+        '<translate z="-1"/><scale value="5"/></transform></shape></scene>')
+    stats = tmp_path / "s.json"
+    assert main(["render", str(main_xml), "--resolution", "8x6", "--spp", "2", "-q", "-o",
+                 str(tmp_path / "m.exr"), "--stats-json", str(stats)]) == 0
+    figures = json.loads(stats.read_text())
+    assert figures["resolution"] == [8, 6]
+    assert figures["integrator"] == "pm" and figures["k"] == 12
+    assert figures["photons_emitted"] == 3000

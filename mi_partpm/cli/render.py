@@ -9,7 +9,6 @@ import json
 import logging
 import signal
 import threading
-import xml.etree.ElementTree as ElementTree
 from pathlib import Path
 from typing import Optional
 
@@ -164,17 +163,17 @@ def _given_options(args) -> list:
 
 def scene_file_integrator(scene: str) -> Optional[str]:
     """The type of ``scene``'s own ``<integrator>`` when it is a scene file with one (at the
-    top level: Mitsuba's default when it has none is ``path``, which cannot be told apart),
-    else None."""
-    from ..scenes import scene_names, scene_path
+    top level of the file or of a file it includes: Mitsuba's default when it has none is
+    ``path``, which cannot be told apart), else None."""
+    from ..scenes import scene_files, scene_names, scene_path
     if scene in scene_names():                # the built-in scenes leave the integrator to us
         return None
     try:
-        root = ElementTree.parse(scene_path(scene)).getroot()
-    except (OSError, ValueError, ElementTree.ParseError):
+        files = scene_files(scene_path(scene))
+    except (OSError, ValueError):
         return None
-    return next((child.get("type", "?") for child in root if child.tag == "integrator"),
-                None)
+    return next((child.get("type", "?") for _, root in files for child in root
+                 if child.tag == "integrator"), None)
 
 
 def _output_path(args) -> Path:

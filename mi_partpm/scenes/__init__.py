@@ -31,13 +31,39 @@ from ..props import check_int
 
 log = logging.getLogger("mi_partpm")
 
-__all__ = ["scene_names", "scene_path", "load_scene", "check_scene", "check_sensor",
+__all__ = ["scene_names", "scene_path", "scene_files", "load_scene", "check_scene", "check_sensor",
            "scene_bounds", "scene_size", "infinite_sphere", "surface_shapes"]
 
 _HERE = Path(__file__).resolve().parent
 
 #: Built-in scene -> {scene parameter: data file it names}.
 SCENE_DATA = {"happy_buddha": {"mesh": "happy_buddha_20k.ply"}}
+
+
+def scene_files(path) -> list:
+    """``(file, root element)`` of a scene file and of every file it includes
+    (``<include filename="..."/>``, relative to the including file's folder, as Mitsuba
+    resolves it), in document order, each once; a file that cannot be read or parsed is
+    left out (Mitsuba's loader then says what is wrong with it)."""
+    import xml.etree.ElementTree as ElementTree
+    found, seen = [], set()
+
+    def visit(file: Path):
+        file = file.resolve()
+        if file in seen:
+            return
+        seen.add(file)
+        try:
+            root = ElementTree.parse(file).getroot()
+        except (OSError, ValueError, ElementTree.ParseError):
+            return
+        found.append((file, root))
+        for element in root.iter("include"):
+            name = element.get("filename")
+            if name:
+                visit(file.parent / name)
+    visit(Path(path))
+    return found
 
 
 def scene_names():
@@ -118,7 +144,9 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
         params["resx"], params["resy"] = int(resolution[0]), int(resolution[1])
     if spp is not None:
         params["spp"] = int(spp)
-    text = path.read_text(errors="replace")
+    # The file and the files it includes: a sensor or a $name may be in either.
+    text = path.read_text(errors="replace") + "".join(
+        file.read_text(errors="replace") for file, _ in scene_files(path)[1:])
     if ("resx" in params or "spp" in params) and "<sensor" not in text and \
             "<include" not in text:
         raise ValueError(f"scene file {str(path)!r} has no sensor: add a camera to render it")
