@@ -275,3 +275,17 @@ def test_an_unknown_option_is_named_by_its_command_with_the_nearest(argv, said, 
         main(argv)
     assert e.value.code == 2
     assert said in capsys.readouterr().err
+
+
+def test_a_plugins_error_of_several_lines_is_said_whole():
+    """A bad prop whose value prints over several lines (a Transform given for a radius):
+    the message kept only the traceback's last line, which read ']'."""
+    from mi_partpm.scenes import _loader_message
+    text = ('[xml.cpp:1] At f.xml (line 1, col 25): failed to instantiate integrator plugin '
+            'of type "partpm": Traceback (most recent call last):\n  File "x.py", line 3, in '
+            '__init__\nValueError: radius must be a finite number in [1e-15, 1e+18], got '
+            'Transform[\n  matrix=[[2, 0, 0, 0]],\n]')
+    assert _loader_message(text) == (
+        'At f.xml (line 1, col 25): failed to instantiate integrator plugin of type "partpm": '
+        'radius must be a finite number in [1e-15, 1e+18], got Transform[ matrix=[[2, 0, 0, '
+        '0]], ]')

@@ -172,8 +172,13 @@ def _loader_message(text: str) -> str:
     text = re.sub(r"^\[[\w.]+:\d+\]\s*", "", text.strip())
     head, marker, tail = text.partition("Traceback (most recent call last):")
     if marker and tail.strip():
-        last = tail.strip().splitlines()[-1]
-        text = head.rstrip() + " " + re.sub(r"^(?:\w+\.)*\w*(?:Error|Exception): ", "", last)
+        # The exception's own lines: from its "...Error: " line on (a message may span
+        # lines, e.g. a Transform's value: its last line alone read "]").
+        lines = tail.strip().splitlines()
+        error = re.compile(r"^(?:\w+\.)*\w*(?:Error|Exception): ")
+        first = max((i for i, line in enumerate(lines) if error.match(line)),
+                    default=len(lines) - 1)
+        text = head.rstrip() + " " + error.sub("", " ".join(lines[first:]))
     return " ".join(text.split())
 
 
