@@ -526,9 +526,11 @@ class PhotonMapper(mi.SamplingIntegrator):
                             "non-delta BSDF (direct light comes from emitter sampling)",
                             self.params.direct)
             else:
-                log.warning("no photon was stored: the scene has no surface with a non-delta "
-                            "BSDF lit by its emitters%s; only emitted light will show",
-                            _small_scene_hint(scene))
+                traced = self.backend.total(int(self.stats.get("photons_traced", 0)))
+                log.warning("no photon was stored of the %d traced: the scene has no surface "
+                            "with a non-delta BSDF lit by its emitters%s, or too few photons "
+                            "were traced to reach one (raise photon_count); only emitted "
+                            "light will show", traced, _small_scene_hint(scene))
 
     def _photon_pass(self, scene, terms, points, width: int, sensor=0, spp: int = 0,
                      render_seed: int = 0, pass_index: int = 0, waves=None):
