@@ -60,7 +60,8 @@ def share_cores(comm) -> int:
 
     Ranks on the same node would otherwise each start one thread per core. Never fewer than
     2: with a pool of one thread (Dr.Jit 1.5), writing a ``mi.Bitmap`` deadlocks. Returns the
-    thread count set (left alone when ``DRJIT_NUM_THREADS`` is set).
+    thread count set: ``PARTPM_THREADS`` per rank where it is set (Dr.Jit 1.5 reads no
+    variable of its own for this: a ``DRJIT_NUM_THREADS`` was left to it, which ignored it).
     """
     from mpi4py import MPI
 
@@ -69,9 +70,18 @@ def share_cores(comm) -> int:
     here = node.size
     node.Free()
     share_memory(here)          # and its share of the free memory
-    if os.environ.get("DRJIT_NUM_THREADS"):
-        return dr.thread_count()
-    threads = max(2, (os.cpu_count() or 1) // here)
+    given = os.environ.get("PARTPM_THREADS")
+    if given:
+        try:
+            threads = int(given)
+        except ValueError:
+            threads = 0
+        if threads < 1:
+            raise ValueError(f"PARTPM_THREADS (Dr.Jit threads per MPI rank) must be an "
+                             f"integer >= 1, got {given!r}")
+        threads = max(2, threads)
+    else:
+        threads = max(2, (os.cpu_count() or 1) // here)
     dr.set_thread_count(threads)
     return threads
 

@@ -487,3 +487,36 @@ def test_only_rank_0_checks_and_makes_the_output_folders(tmp_path):
     done = _mpmd(["-wdir", str(a), *args], ["-wdir", str(b), *args], timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert (a / "out" / "x.exr").exists() and (b / "out").is_file()
+
+
+SHARE_CORES = """
+import os
+import drjit as dr
+import mitsuba as mi
+mi.set_variant("llvm_ad_rgb")
+from mpi4py import MPI
+from mi_partpm.backends import share_cores
+os.environ["PARTPM_THREADS"] = "3"
+print(share_cores(MPI.COMM_WORLD), dr.thread_count())
+os.environ["PARTPM_THREADS"] = "abc"
+try:
+    share_cores(MPI.COMM_WORLD)
+except ValueError as e:
+    print(e)
+del os.environ["PARTPM_THREADS"]
+print(share_cores(MPI.COMM_WORLD) == max(2, os.cpu_count()))
+"""
+
+
+def test_each_rank_takes_partpm_threads_where_it_is_set():
+    """A rank's Dr.Jit threads: its share of the node's cores, or PARTPM_THREADS (checked).
+    The share was skipped where DRJIT_NUM_THREADS was set, a variable Dr.Jit 1.5 does not
+    read, so every rank then kept a thread per core."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, "-c", SHARE_CORES], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.splitlines() == [
+        "3 3", "PARTPM_THREADS (Dr.Jit threads per MPI rank) must be an integer >= 1, got "
+        "'abc'", "True"]

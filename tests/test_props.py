@@ -289,3 +289,16 @@ def test_a_plugins_error_of_several_lines_is_said_whole():
         'At f.xml (line 1, col 25): failed to instantiate integrator plugin of type "partpm": '
         'radius must be a finite number in [1e-15, 1e+18], got Transform[ matrix=[[2, 0, 0, '
         '0]], ]')
+
+
+def test_one_pass_with_a_time_limit_is_not_progressive_on_the_command_line(capsys):
+    """--passes 1 --time 5 renders one pass, as the integrator decides: --alpha and
+    --checkpoint-every between passes are refused there (they were taken, since --time
+    counted as progressive), and --radius-fraction's help says when 0.025 is the default."""
+    for option in (["--alpha", "0.5"], ["--checkpoint-every", "1"]):
+        assert main([*SMALL, "--passes", "1", "--time", "5", *option, "-o", "x.exr"]) == 2
+        assert "it needs a progressive render (--passes P > 1, or --time SECONDS without " \
+            "--passes)" in capsys.readouterr().err
+    from mi_partpm.cli.parser import build_parser
+    assert "--passes > 1, or --time without --passes" in " ".join(
+        build_parser()._subparsers._group_actions[0].choices["render"].format_help().split())

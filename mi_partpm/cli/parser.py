@@ -130,7 +130,8 @@ def _render_options(sub):
                         "--radius-fraction of the scene)")
     g.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
                    help="radius as a fraction of the scene's longest side (default 0.05; "
-                        "0.025 for a progressive render: --passes > 1 or --time)")
+                        "0.025 for a progressive render: --passes > 1, or --time without "
+                        "--passes)")
     r.add_argument("--max-radius", type=radius_float("--max-radius"),
                    help="cap of the kNN radius in world units (pm; default: none)")
     r.add_argument("--max-depth", type=int,

@@ -80,13 +80,14 @@ def integrator_desc(args) -> dict:
     if progressive_options and args.integrator != "partpm":
         raise UsageError(f"{_options(progressive_options)} to --integrator partpm only (the "
                          f"progressive photon mapper)")
-    progressive = bool(args.time) or (args.passes or 1) > 1
+    # As the integrator decides: a time limit alone runs passes until it; --passes 1 is one.
+    progressive = (args.passes or 1) > 1 or (bool(args.time) and args.passes is None)
     for option, value, what in (("--alpha", args.alpha, "sets how fast the radius shrinks"),
                                 ("--checkpoint-every", args.checkpoint_every,
                                  "writes the image")):
         if value is not None and not progressive:
             raise UsageError(f"{option} {what} between passes: it needs a progressive render "
-                             f"(--passes P > 1, or --time SECONDS)")
+                             f"(--passes P > 1, or --time SECONDS without --passes)")
     if args.checkpoint_every and not args.time and args.checkpoint_every > args.passes:
         raise UsageError(f"--checkpoint-every {args.checkpoint_every} would write no "
                          f"checkpoint in {args.passes} passes: give K <= --passes")
