@@ -447,3 +447,10 @@ def test_bench_in_a_mono_variant_skips_only_the_emitter_it_cannot_load(tmp_path)
         "variants only)" in done.stdout + done.stderr
     names = [r["benchmark"] for r in json.loads(out.read_text())["rows"]]
     assert "emitting, envmap" in names and "emitting, sunsky" not in names
+
+
+def test_bench_smoke_takes_the_repeats_it_is_given(tmp_path):
+    """--repeats with --smoke was checked and then dropped (the JSON said 1 round)."""
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--smoke", "--repeats", "2", "--out", str(out), "-q"]) == 0
+    assert json.loads(out.read_text())["repeats"] == 2

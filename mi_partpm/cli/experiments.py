@@ -72,7 +72,7 @@ def run_bench(args) -> int:
         check_writable(args.out, "--out")
     try:
         result = run(args.out, args.scene, size="smoke" if args.smoke else "full",
-                     repeats=None if args.smoke else args.repeats, progress=progress(args))
+                     repeats=args.repeats, progress=progress(args))
     except (FileNotFoundError, ValueError) as e:
         raise UsageError(last_line(e)) from None
     print(format_bench(result))

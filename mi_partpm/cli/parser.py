@@ -254,8 +254,9 @@ def _experiment_options(sub):
     b = sub.add_parser("bench", help="kd-tree, estimate, build, tracer and memory benchmarks "
                                      "against scipy, pykdtree and Mitsuba's path tracer")
     b.add_argument("--scene", default="cornell_box", help="scene (default cornell_box)")
-    b.add_argument("--repeats", type=positive_int("--repeats"), default=5,
-                   help="timed runs of every benchmark; medians are reported (default 5)")
+    b.add_argument("--repeats", type=positive_int("--repeats"),
+                   help="timed runs of every benchmark; medians are reported (default 5; "
+                        "1 with --smoke)")
     b.add_argument("--smoke", action="store_true",
                    help="tiny sizes: checks that every benchmark runs, measures nothing")
     b.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb)")
