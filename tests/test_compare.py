@@ -171,8 +171,12 @@ def test_pm_max_radius_with_fewer_than_k_photons_uses_max_radius():
     ({"k": 2.5}, r"k must be an integer .* got 2.5"),
     ({"max_radius": 0.0}, r"max_radius must be a finite number in \[1e-15, 1e\+18\], got 0.0"),
     ({"max_radius": float("nan")}, r"max_radius .* got nan"),
-    ({"radius": 0.1}, r"radius"),               # pm has no fixed radius: an unknown prop
-    ({"map_count": 4}, r"map_count"),           # pm has one map
+    # partpm's props, named (Mitsuba's message said "unreferenced property in unknown
+    # plugin"): pm has no fixed radius, one map, one pass.
+    ({"radius": 0.1}, r"radius applies to partpm only: pm is the single-pass "
+                      r"k-nearest-neighbour photon mapper of one map"),
+    ({"map_count": 4}, r"map_count applies to partpm only"),
+    ({"passes": 4, "alpha": 0.5}, r"passes, alpha apply to partpm only"),
 ])
 def test_pm_bad_props_raise_clear_errors(props, message):
     with pytest.raises(Exception, match=message):
