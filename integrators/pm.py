@@ -101,6 +101,11 @@ class PMIntegrator(PhotonMapper):
     def before_estimate(self):
         cap = "none" if self.max_radius is None else f"{self.max_radius:.4g}"
         log.info("estimate: k = %d nearest photons, max_radius %s, rendering ...", self.k, cap)
+        stored = int(self.stats.get("photons_stored", 0))
+        if self.max_radius is None and 0 < stored <= self.k:     # (a cap bounds the blur)
+            log.warning("only %d photons were stored, no more than k = %d: every estimate "
+                        "gathers the whole map, a blur of the whole scene (lower k or raise "
+                        "photon_count)", stored, self.k)
         # Sum of r, number of estimates, number that found fewer than k (filled by estimate()).
         self._acc = dr.zeros(mi.Float, 3)
 

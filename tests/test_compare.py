@@ -160,6 +160,20 @@ def test_pm_max_radius_with_fewer_than_k_photons_uses_max_radius():
     assert pm.stats["capped_share"] == 1.0 and abs(pm.stats["mean_knn_radius"] - 0.5) < 1e-6
 
 
+def test_pm_warns_when_k_reaches_the_photons_stored(caplog):
+    """k at least the photons stored, with no max_radius: every estimate gathers the whole
+    map, a blur of the scene, and pm now says so (it rendered that in silence); with a cap
+    the radius is bounded, and no warning."""
+    scene = lit_plane()
+    for props, warned in (({}, True), ({"max_radius": 0.5}, False)):
+        caplog.clear()
+        pm = mi.load_dict({"type": "pm", "photon_count": 1000, "k": 1000, **props})
+        with caplog.at_level("WARNING", logger="mi_partpm"):
+            render(scene, pm)
+        said = f"only {pm.stats['photons_stored']} photons were stored, no more than k = 1000"
+        assert (said in caplog.text) == warned, caplog.text
+
+
 @pytest.mark.parametrize("props, message", [
     ({"k": 0}, r"k must be an integer in \[2, 16383\] .* got 0"),
     ({"k": 1}, r"k must be an integer in \[2, 16383\] .* got 1"),
