@@ -278,19 +278,16 @@ class PhotonMapper(mi.SamplingIntegrator):
         layers = self._layers if layers is None else layers
         return sum(map_sizes(l.photon_count, self.map_count) for l in layers)
 
-    def _stored_ratio(self, maps, tracing=None):
+    def _stored_ratio(self, maps):
         """Photons stored per photon emitted over the layers of ``maps``, each layer's
-        emitted photons weighted by its own ratio: measured in an earlier wave (or, for the
-        layer being traced, ``tracing = (name, ratio)`` so far), else assumed
+        emitted photons weighted by its own ratio: measured (in an earlier wave, or so far
+        in the one being traced), else assumed
         (:func:`~mi_partpm.memory.assumed_stored_per_emitted`: a caustic path stores one
         photon where it lands, a global one about three)."""
-        measured = dict(self._stored_per_emitted)
-        if tracing is not None:
-            measured[tracing[0]] = tracing[1]
         emitted = stored = 0.0
         for layer in self._layers:
             e = float(map_sizes(layer.photon_count, self.map_count)[maps].sum())
-            ratio = measured.get(layer.name)
+            ratio = self._stored_per_emitted.get(layer.name)
             if ratio is None:
                 ratio = memory.assumed_stored_per_emitted(layer.paths,
                                                           self._photon_depth(layer))
@@ -308,11 +305,10 @@ class PhotonMapper(mi.SamplingIntegrator):
             self._layers = self.layers()
         sizes = self._emitted_per_map()[owned]
         depth, ratio = self._photon_depth(), self._stored_ratio(owned)
-        eye = memory.eye_bytes(*self._eye_size(scene, sensor, spp))
-        budget = memory.wave_budget(eye, self.wave_bytes)
+        width, height, samples = self._eye_size(scene, sensor, spp)
+        budget = memory.wave_budget(memory.eye_bytes(width, height, samples), self.wave_bytes)
         share = self._batch_share()
         waves = memory.plan_waves(sizes, depth, budget, ratio, self.maps_per_wave, share)
-        width, height, samples = self._eye_size(scene, sensor, spp)
         estimate = memory.estimate_render(int(sizes.sum()), depth, width, height, samples,
                                           ratio, waves, sizes, share)
         memory.check_fits(estimate, self._photons_text(), option=self._photons_option())
@@ -348,9 +344,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         def check_during(ratio, done):
             # What this wave measured so far: a wave planned again plans with it.
             self._stored_per_emitted[layer.name] = ratio
-            wave_ratio = self._stored_ratio(maps, tracing=(layer.name, ratio))
             estimate = memory.estimate_render(emitted, depth, width, height, samples,
-                                              wave_ratio, batch_share=share)
+                                              self._stored_ratio(maps), batch_share=share)
             memory.check_fits(estimate, f"{self._photons_text()} (projected from the first "
                                         f"{done:,} photons traced)",
                               option=self._photons_option())
@@ -557,28 +552,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             except memory.MemoryGuardError:
                 if len(wave) == 1:
                     raise
-                # Its paths store more photons than the plan assumed, so the wave would not
-                # fit: its maps go into smaller waves, planned with what it measured (the
-                # streams are the same, so are the photons, counted once: a layer done
-                # before the one that stopped is traced again).
-                # (The times spent stay counted.)
-                for key in [k for k in self.stats if not k.startswith(("time_", "cpu_"))]:
-                    if key in before:
-                        self.stats[key] = before[key]
-                    else:
-                        del self.stats[key]
-                for layer in self._layers:
-                    layer.maps = None
-                smaller = self.plan_waves(scene, sensor, spp, wave)
-                if max(len(w) for w in smaller) >= len(wave):
-                    # The plan would keep it whole (maps_per_wave, or more memory free once
-                    # its maps are freed): halve it, or it would stop again where it did.
-                    half = (len(wave) + 1) // 2
-                    smaller = [wave[:half], wave[half:]]
-                log.info("the wave of %s stores more photons per photon emitted than "
-                         "planned: traced again in %d smaller waves", _maps_text(wave),
-                         len(smaller))
-                queue[:0] = smaller
+                queue[:0] = self._split_wave(scene, sensor, spp, wave, before)
                 wave_index -= 1
                 continue
             if pass_index == 0 and wave_index == 0:
@@ -601,6 +575,29 @@ class PhotonMapper(mi.SamplingIntegrator):
             self._warn_if_none_found(terms, arrays, len(points))
         for j, term in enumerate(terms):
             term.state.update(arrays[2 * j], arrays[2 * j + 1])
+
+    def _split_wave(self, scene, sensor, spp, wave, before) -> list:
+        """The smaller waves of a ``wave`` of several maps whose paths store more photons
+        than its plan assumed, so that it would not fit: planned with what it measured (the
+        streams are the same, so are the photons). Its maps are freed and the stats put back
+        as they were ``before`` it (a layer done before the one that stopped is traced
+        again and counted once; the times spent stay counted)."""
+        for key in [k for k in self.stats if not k.startswith(("time_", "cpu_"))]:
+            if key in before:
+                self.stats[key] = before[key]
+            else:
+                del self.stats[key]
+        for layer in self._layers:
+            layer.maps = None
+        smaller = self.plan_waves(scene, sensor, spp, wave)
+        if max(len(w) for w in smaller) >= len(wave):
+            # The plan would keep it whole (maps_per_wave, or more memory free once its maps
+            # are freed): halve it, or it would stop again where it did.
+            half = (len(wave) + 1) // 2
+            smaller = [wave[:half], wave[half:]]
+        log.info("the wave of %s stores more photons per photon emitted than planned: "
+                 "traced again in %d smaller waves", _maps_text(wave), len(smaller))
+        return smaller
 
     def _warn_if_none_found(self, terms, arrays, visible: int):
         """Per term, warn when its maps hold photons and visible points exist but no
@@ -672,9 +669,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         info["last"] = stop or done == self.passes
         if info["last"]:
             info["eta"] = 0.0
-        if stop:                    # why the render has fewer passes than it was given
-            self.stats["stopped_by"] = "time_limit" if timed_out else \
-                "request" if asked else "another_process"
+        if stop:
+            self._stopped_by(timed_out, asked)
         if self.passes > 1:
             radius = "" if info["mean_radius"] is None else \
                 f", mean radius {info['mean_radius']:.4g}"
@@ -696,9 +692,15 @@ class PhotonMapper(mi.SamplingIntegrator):
             # the others, who ask as often whatever their on_pass did).
             if self.backend.agree(self._cancelled):
                 stop = True
-                self.stats["stopped_by"] = "request"
+                self._stopped_by(False, True)
                 log.info("pass %d: stopped as asked", done)
         return stop
+
+    def _stopped_by(self, timed_out: bool, asked: bool):
+        """Why the render has fewer passes than it was given, in its stats: its time limit,
+        a request (Ctrl-C, cancel()), or another process of the render that stopped."""
+        self.stats["stopped_by"] = "time_limit" if timed_out else \
+            "request" if asked else "another_process"
 
     def _remaining(self, elapsed: float, done: int) -> float:
         """Seconds left: the passes to go at the mean pass time so far, or less where the
@@ -744,7 +746,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             if timed_out or self._cancelled or \
                     (self.stop_requested is not None and self.stop_requested()):
                 if pass_index + 1 < self.passes:
-                    self.stats["stopped_by"] = "time_limit" if timed_out else "request"
+                    self._stopped_by(timed_out, True)
                 break
         self._finish(terms)
         return eye.emitted + _radiance(terms), eye.valid, []

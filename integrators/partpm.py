@@ -357,9 +357,9 @@ class PartPMIntegrator(PhotonMapper):
         radius = f"radius = {p.radius}" if p.radius is not None \
             else f"radius_fraction = {self.radius_fraction}"
         passes = "until time_limit" if self.passes == UNTIL_TIME_LIMIT else self.passes
-        caustic = ""                    # the caustic maps' radius, when they are on
-        if not self.caustic_photon_count:
-            pass
+        # The caustic maps' radius, when they are on (terms() derives the same).
+        if self.caustic_photon_count == 0:
+            caustic = ""
         elif self.caustic_radius is not None:
             caustic = f", caustic_radius = {self.caustic_radius}"
         elif self.caustic_radius_fraction is not None:

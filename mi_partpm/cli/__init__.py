@@ -63,10 +63,8 @@ def _main(argv, comm=None) -> int:
     rank; ranks other than 0 log only errors: every rank renders the same scene with the
     same options, so their warnings are rank 0's, which speaks for the job)."""
     rank = comm.rank if comm is not None else 0
-    if rank:                        # every rank parses the same words: rank 0 says the error
-        with contextlib.redirect_stderr(io.StringIO()):
-            args = build_parser().parse_args(argv)
-    else:
+    # Every rank parses the same words: rank 0 alone says what is wrong with them.
+    with contextlib.redirect_stderr(io.StringIO()) if rank else contextlib.nullcontext():
         args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.ERROR if rank else logging.WARNING
                         if getattr(args, "quiet", False) else logging.INFO,

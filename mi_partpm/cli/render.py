@@ -173,7 +173,7 @@ def scene_file_integrator(scene: str) -> Optional[str]:
         files = scene_files(scene_path(scene))
     except (OSError, ValueError):
         return None
-    return next((child.get("type", "?") for _, root in files for child in root
+    return next((child.get("type", "?") for _, _, root in files for child in root
                  if child.tag == "integrator"), None)
 
 

@@ -41,7 +41,7 @@ SCENE_DATA = {"happy_buddha": {"mesh": "happy_buddha_20k.ply"}}
 
 
 def scene_files(path) -> list:
-    """``(file, root element)`` of a scene file and of every file it includes
+    """``(file, text, root element)`` of a scene file and of every file it includes
     (``<include filename="..."/>``, relative to the including file's folder, as Mitsuba
     resolves it), in document order, each once; a file that cannot be read or parsed is
     left out (Mitsuba's loader then says what is wrong with it)."""
@@ -54,10 +54,11 @@ def scene_files(path) -> list:
             return
         seen.add(file)
         try:
-            root = ElementTree.parse(file).getroot()
+            text = file.read_text(errors="replace")
+            root = ElementTree.fromstring(text)
         except (OSError, ValueError, ElementTree.ParseError):
             return
-        found.append((file, root))
+        found.append((file, text, root))
         for element in root.iter("include"):
             name = element.get("filename")
             if name:
@@ -145,8 +146,8 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
     if spp is not None:
         params["spp"] = int(spp)
     # The file and the files it includes: a sensor or a $name may be in either.
-    text = path.read_text(errors="replace") + "".join(
-        file.read_text(errors="replace") for file, _ in scene_files(path)[1:])
+    files = scene_files(path)
+    text = "".join(t for _, t, _ in files) if files else path.read_text(errors="replace")
     if ("resx" in params or "spp" in params) and "<sensor" not in text and \
             "<include" not in text:
         raise ValueError(f"scene file {str(path)!r} has no sensor: add a camera to render it")
