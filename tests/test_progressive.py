@@ -585,3 +585,55 @@ def test_a_scene_files_includes_hold_its_sensor_and_integrator(tmp_path):
     assert figures["resolution"] == [8, 6]
     assert figures["integrator"] == "pm" and figures["k"] == 12
     assert figures["photons_emitted"] == 3000
+
+
+DEFINES_XML = (
+    '<scene version="3.0.0"><default name="albedo" value="0.5"/><default name="light" '
+    'value="10"/><sensor type="perspective"><transform name="to_world"><lookat '
+    'origin="0, 0, 3" target="0, 0, 0" up="0, 1, 0"/></transform><film type="hdrfilm">'
+    '<integer name="width" value="8"/><integer name="height" value="8"/></film><sampler '
+    'type="independent"><integer name="sample_count" value="2"/></sampler></sensor>'
+    '<shape type="rectangle"><bsdf type="diffuse"><rgb name="reflectance" value="$albedo"/>'
+    '</bsdf></shape><shape type="rectangle"><transform name="to_world"><scale value="0.3"/>'
+    '<rotate x="1" angle="180"/><translate z="2"/></transform><emitter type="area"><rgb '
+    'name="radiance" value="$light"/></emitter></shape></scene>')
+
+
+def test_render_sets_scene_parameters_with_D(tmp_path, capsys):
+    """-D NAME=VALUE sets the scene file's $NAME, as Mitsuba's own command line does (there
+    was no way to set any but $resx, $resy and $spp). The image is linear in the light's
+    radiance and in the floor's albedo (one bounce, the same photons and eye samples): the
+    ratios are exact up to float rounding, 1e-4. A name the file does not take, a name given
+    two values, the names --resolution and --spp own, and a pair without '=' are refused
+    naming -D."""
+    xml = tmp_path / "d.xml"
+    xml.write_text(DEFINES_XML)
+
+    def mean(*defines):
+        out = tmp_path / "d.exr"
+        assert main(["render", str(xml), "--photons", "20000", "-q", *defines, "-o",
+                     str(out)]) == 0
+        return float(np.mean(np.array(mi.Bitmap(str(out)))[..., :3]))
+    base = mean()
+    assert base > 0
+    assert mean("-D", "light=20") / base == pytest.approx(2.0, rel=1e-4)
+    assert mean("-Dalbedo=0.25", "-D", "light=10") / base == pytest.approx(0.5, rel=1e-4)
+    capsys.readouterr()
+    for defines, message in (
+            (["-D", "nope=1"], "does not take $nope"),
+            (["-D", "light=1", "-D", "light=2"], "-D light is given twice"),
+            (["-D", "spp=3"], "-D spp: set the scene's $spp with --spp"),
+            (["-D", "light"], "-D must look like NAME=VALUE")):
+        try:           # a bad pair is argparse's error (SystemExit), the others main's
+            status = main(["render", str(xml), "-q", *defines, "-o", str(tmp_path / "e.exr")])
+        except SystemExit as e:
+            status = e.code
+        assert status == 2, defines
+        assert message in capsys.readouterr().err, defines
+    assert not (tmp_path / "e.exr").exists()
+
+
+def test_list_takes_no_scene(capsys):
+    """render --list FILE listed the built-in scenes and ignored FILE without a word."""
+    assert main(["render", "--list", "my_scene.xml"]) == 2
+    assert "--list lists the built-in scenes and takes no SCENE" in capsys.readouterr().err

@@ -11,7 +11,7 @@ from ..backends import interrupted  # noqa: F401  (the command line's name for i
 from ..props import check_float, check_int
 
 __all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
-           "radius_float", "int_list", "setup", "progress", "last_line", "interrupted",
+           "radius_float", "int_list", "scene_parameter", "setup", "progress", "last_line", "interrupted",
            "write_atomic", "check_writable", "check_folder", "check_scene_name",
            "check_variant_name", "check_eye_pass", "user_errors", "MAX_PIXELS", "MADE_FOLDERS",
            "remove_made_folders"]
@@ -62,6 +62,38 @@ def _integer(text: str) -> int:
     if str(value) != text.lstrip("+"):
         raise ValueError(text)
     return value
+
+
+#: Names that -D cannot set: the options that set them, or load_scene's own arguments.
+_NOT_DEFINES = {"resx": "--resolution WxH", "resy": "--resolution WxH", "spp": "--spp N",
+                "scene": None, "resolution": None, "data_dir": None}
+
+
+def scene_parameter(text: str):
+    """An argparse type for ``-D NAME=VALUE`` (as Mitsuba's own command line has it): the
+    scene file's parameter ``$NAME`` set to VALUE, a string as Mitsuba reads it."""
+    name, equals, value = text.partition("=")
+    if not equals or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+        raise argparse.ArgumentTypeError(
+            f"-D must look like NAME=VALUE, NAME a scene parameter ($NAME in the scene file: "
+            f"letters, digits, _), got {text!r}")
+    if name in _NOT_DEFINES:
+        option = _NOT_DEFINES[name]
+        raise argparse.ArgumentTypeError(
+            f"-D {name}: " + (f"set the scene's ${name} with {option}" if option else
+                              f"{name!r} cannot be set with -D (a name of load_scene's own "
+                              f"arguments)"))
+    return name, value
+
+
+def scene_parameters(pairs) -> dict:
+    """The ``-D`` pairs as a dict; a name given twice is refused (which one was meant?)."""
+    params = {}
+    for name, value in pairs or ():
+        if name in params and params[name] != value:
+            raise UsageError(f"-D {name} is given twice, as {params[name]!r} and {value!r}")
+        params[name] = value
+    return params
 
 
 def positive_int(name, low=1, high=None):
@@ -129,6 +161,10 @@ def setup(args, needs_plugins=True) -> bool:
     from ..scenes import scene_names
 
     if getattr(args, "list", False):
+        if getattr(args, "scene", None):
+            raise UsageError(f"--list lists the built-in scenes and takes no SCENE (got "
+                             f"{args.scene!r}): give --list alone, or leave it out to "
+                             f"{args.command} the scene")
         print("\n".join(scene_names()))
         return False
     if not getattr(args, "scene", None):

@@ -8,7 +8,8 @@ from hwsim.cli import add_arguments as hwsim_arguments
 
 from ..kdtree.knn import MAX_K
 from ..trace import MAX_RUN
-from .common import parse_resolution, positive_float, positive_int, radius_float, seed_int
+from .common import (parse_resolution, positive_float, positive_int, radius_float,
+                     scene_parameter, seed_int)
 
 __all__ = ["build_parser"]
 
@@ -149,6 +150,11 @@ def _render_options(sub):
     r.add_argument("--checkpoint-every", type=positive_int("--checkpoint-every"), metavar="K",
                    help="write the image so far every K passes, K in [1, --passes] (default: "
                         "only at the end)")
+    r.add_argument("-D", dest="define", action="append", metavar="NAME=VALUE",
+                   type=scene_parameter,
+                   help="set the scene's parameter $NAME (value=\"$NAME\" in the scene file) "
+                        "to VALUE, as mitsuba -D does; repeatable (the film size and the "
+                        "sample count with --resolution and --spp)")
     _quality_options(r)
     r.add_argument("--backend", choices=("local", "mpi"),
                    help="where the maps run: this process (local, the default), or the ranks "

@@ -12,7 +12,8 @@ import threading
 from pathlib import Path
 from typing import Optional
 
-from .common import UsageError, check_writable, interrupted, last_line, setup, write_atomic
+from .common import (UsageError, check_writable, interrupted, last_line, scene_parameters,
+                     setup, write_atomic)
 
 __all__ = ["run_render", "integrator_desc", "format_ranks"]
 
@@ -230,11 +231,12 @@ def run_render(args) -> int:
                                  f"<integrator type=\"{from_file}\"> of {args.scene}: add "
                                  f"--integrator {from_file})") from None
             raise
+    defines = scene_parameters(args.define)
     out = _output_path(args)           # after the options' checks: it makes the folders
     clock = Stopwatch()
     try:
         scene = mi_partpm.load_scene(args.scene, resolution=args.resolution, spp=args.spp,
-                                     data_dir=args.data)
+                                     data_dir=args.data, **defines)
         check_scene(scene, args.scene)
     except (FileNotFoundError, ValueError) as e:
         raise UsageError(str(e)) from None

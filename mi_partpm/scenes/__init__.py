@@ -154,7 +154,11 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
     for name in params:
         if f"${name}" not in text:
             option = {"resx": "the resolution (--resolution)", "resy": "the resolution "
-                      "(--resolution)", "spp": "the sample count (--spp)"}.get(name, name)
+                      "(--resolution)", "spp": "the sample count (--spp)"}.get(name)
+            if option is None:          # a parameter of the caller's (-D NAME=VALUE)
+                raise ValueError(
+                    f"scene file {str(path)!r} does not take ${name} (no \"${name}\" in it "
+                    f"or the files it includes), so {name} (-D {name}=...) cannot be set")
             raise ValueError(
                 f"scene file {str(path)!r} does not take ${name}, so {option} cannot be set: "
                 f"use value=\"${name}\" in it (with <default name=\"{name}\" .../>), or with "
