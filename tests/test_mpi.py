@@ -346,6 +346,21 @@ def test_scaling_command_small(tmp_path, capsys):
     assert "lower --spp or --resolution" in err and "mpiexec" not in err
 
 
+def test_the_reduction_benchmark_reduces_arrays_of_the_variant_it_is_given(tmp_path):
+    """scaling --variant rendered in that variant but benchmarked (and loaded, in situ) the
+    reduction of LLVM arrays whatever the variant (drjit.llvm's Float): on a GPU variant the
+    wrong device's arrays. One rank, one round, in a process of its own (it sets the
+    variant)."""
+    out = tmp_path / "rb.json"
+    done = subprocess.run([sys.executable, "-m", "mi_partpm.experiments.reducebench",
+                           "--repeats", "1", "--condition", "in_situ", "--variant",
+                           "llvm_ad_mono", "--out", str(out)], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads(out.read_text())
+    assert result["variant"] == "llvm_ad_mono" and len(result["reduce"]) == len(result["sizes"])
+
+
 def test_a_failed_scaling_run_is_named_by_the_ranks_own_line():
     """What mpiexec's stderr says of a failed render: the first rank's own error line, not
     the MPI or Dr.Jit lines about the abort that may come after it."""

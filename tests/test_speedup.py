@@ -435,7 +435,7 @@ def test_bench_in_a_mono_variant_skips_only_the_emitter_it_cannot_load(tmp_path)
     """Mitsuba's sunsky loads in RGB and spectral variants only: `bench --variant
     llvm_ad_mono` ended in its traceback after every other row had run, and wrote nothing.
     It now skips that row, says so, and writes the others (in a process of its own: the
-    variant is the process's)."""
+    variant is the process's). Its memory rows are measured in that variant too."""
     import subprocess
     import sys
     out = tmp_path / "bench.json"
@@ -445,8 +445,12 @@ def test_bench_in_a_mono_variant_skips_only_the_emitter_it_cannot_load(tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "emitting, sunsky: skipped (Mitsuba's sunsky renders in RGB and spectral " \
         "variants only)" in done.stdout + done.stderr
-    names = [r["benchmark"] for r in json.loads(out.read_text())["rows"]]
+    rows = json.loads(out.read_text())["rows"]
+    names = [r["benchmark"] for r in rows]
     assert "emitting, envmap" in names and "emitting, sunsky" not in names
+    # The memory rows' probe process renders the bench's variant (it set llvm_ad_rgb).
+    memory = [r for r in rows if r["benchmark"].startswith("memory")]
+    assert memory and all(r["variant"] == "llvm_ad_mono" for r in memory)
 
 
 def test_bench_smoke_takes_the_repeats_it_is_given(tmp_path):

@@ -337,13 +337,14 @@ def _bench_memory(b: _Bench, scene_name, counts):
     """Row 7: bytes per stored photon, measured in a fresh process (:mod:`.memprobe`)."""
     from .memprobe import probe
     for count in counts:
-        m = probe(scene_name, count)
+        m = probe(scene_name, count, variant=mi.variant())   # the variant the bench runs
         b.row(f"memory, {count:,} photons emitted", m["peak_rss_bytes"] / m["stored"],
               m["drjit_peak_bytes"] / m["stored"], "Dr.Jit's own peak (B/photon)", 80.0,
               m["peak_rss_bytes"] / m["stored"], "process peak, bytes per stored photon",
               at_least=False, unit="B/photon", stored=m["stored"],
               peak_rss_bytes=m["peak_rss_bytes"], drjit_peak_bytes=m["drjit_peak_bytes"],
-              baseline_rss_bytes=m["baseline_rss_bytes"], seconds=m["seconds"])
+              baseline_rss_bytes=m["baseline_rss_bytes"], seconds=m["seconds"],
+              variant=m["variant"])
 
 
 def run_bench(out_json=None, scene_name: str = "cornell_box", size: str = "full",

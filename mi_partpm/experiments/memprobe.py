@@ -26,11 +26,13 @@ def _rss_now() -> int:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
-def measure(scene_name: str, photons: int, maps: int = 8, resolution: int = 64) -> dict:
-    """Render in this process (see the module's text) and return the figures."""
+def measure(scene_name: str, photons: int, maps: int = 8, resolution: int = 64,
+            variant: str = "llvm_ad_rgb") -> dict:
+    """Render in this process (see the module's text) in ``variant`` and return the figures
+    (Dr.Jit's peak: of the variant's backend)."""
     import drjit as dr
     import mitsuba as mi
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(variant)
     import mi_partpm
     from mi_partpm.memory import peak_rss_bytes
     scene = mi_partpm.load_scene(scene_name, resolution=(resolution, resolution), spp=1)
@@ -43,22 +45,24 @@ def measure(scene_name: str, photons: int, maps: int = 8, resolution: int = 64) 
     image = mi.render(scene, integrator=integrator)
     dr.eval(image)
     dr.sync_thread()
-    return {"scene": scene_name, "photons": photons, "maps": maps,
+    return {"scene": scene_name, "photons": photons, "maps": maps, "variant": variant,
             "stored": int(integrator.stats["photons_stored"]),
             "seconds": time.perf_counter() - t0, "baseline_rss_bytes": baseline,
             "peak_rss_bytes": peak_rss_bytes(),
-            "drjit_peak_bytes": int(dr.detail.malloc_watermark(dr.JitBackend.LLVM)),
+            "drjit_peak_bytes": int(dr.detail.malloc_watermark(dr.backend_v(mi.Float))),
             "stats": {k: v for k, v in integrator.stats.items()
                       if isinstance(v, (int, float))}}
 
 
-def probe(scene_name: str, photons: int, maps: int = 8, timeout: float = 3600) -> dict:
+def probe(scene_name: str, photons: int, maps: int = 8, timeout: float = 3600,
+          variant: str = "llvm_ad_rgb") -> dict:
     """:func:`measure` in a fresh Python process."""
     with tempfile.TemporaryDirectory() as folder:
         out = Path(folder) / "memory.json"
         done = subprocess.run([sys.executable, "-m", "mi_partpm.experiments.memprobe",
                                "--scene", scene_name, "--photons", str(photons), "--maps",
-                               str(maps), "--out", str(out)], capture_output=True, text=True,
+                               str(maps), "--variant", variant, "--out", str(out)],
+                              capture_output=True, text=True,
                               timeout=timeout, env=os.environ.copy())
         if done.returncode != 0:
             raise RuntimeError(f"the memory probe of {photons:,} photons failed (exit "
@@ -72,9 +76,11 @@ def main(argv=None) -> int:
     parser.add_argument("--scene", default="cornell_box")
     parser.add_argument("--photons", type=int, required=True)
     parser.add_argument("--maps", type=int, default=8)
+    parser.add_argument("--variant", default="llvm_ad_rgb")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
-    Path(args.out).write_text(json.dumps(measure(args.scene, args.photons, args.maps),
+    Path(args.out).write_text(json.dumps(measure(args.scene, args.photons, args.maps,
+                                                 variant=args.variant),
                                          indent=2) + "\n")
     return 0
 

@@ -36,27 +36,31 @@ SIZES = tuple(4 ** i for i in range(1, 13))
 CONDITIONS = ("transport", "in_situ")
 
 
-def _drjit_work():
-    """A Dr.Jit kernel on the LLVM backend, like the estimate before the backend's reduction."""
+def _drjit_work(Float):
+    """A Dr.Jit kernel on the variant's backend, like the estimate before the backend's
+    reduction."""
     import drjit as dr
-    from drjit.llvm import Float
     x = dr.arange(Float, 1 << 23)
     dr.eval(dr.sum(dr.sin(x) * x))
 
 
 def measure(comm, sizes: Sequence[int] = SIZES, repeats: int = 15, warmup: int = 2,
-            condition: str = "transport") -> dict:
-    """Median seconds of Reduce and of a one-way ping-pong for each size (on rank 0)."""
-    from drjit.llvm import Float
+            condition: str = "transport", variant: str = "llvm_ad_rgb") -> dict:
+    """Median seconds of Reduce and of a one-way ping-pong for each size (on rank 0), of
+    arrays of ``variant``'s backend, as the renders of that variant reduce them."""
+    import mitsuba as mi
     from ..backends import allreduce_arrays
     if condition not in CONDITIONS:
         raise ValueError(f"condition must be one of {', '.join(CONDITIONS)}, got {condition!r}")
+    mi.set_variant(variant)
+    Float = mi.Float
     work = None
     if condition == "in_situ":
         from ..backends import share_cores
         share_cores(comm)
-        work = _drjit_work
-    out = {"ranks": comm.size, "condition": condition, "sizes": [], "reduce": [],
+        work = lambda: _drjit_work(Float)  # noqa: E731
+    out = {"ranks": comm.size, "condition": condition, "variant": variant, "sizes": [],
+           "reduce": [],
            "pingpong": [], "repeats": repeats}
     for size in sizes:
         count = max(1, size // 4)
@@ -93,11 +97,12 @@ def measure(comm, sizes: Sequence[int] = SIZES, repeats: int = 15, warmup: int =
 
 
 def run_reduce_bench(ranks: int, out_json, repeats: int = 15, mpiexec_args=(),
-                     timeout: float = 600, condition: str = "transport") -> dict:
+                     timeout: float = 600, condition: str = "transport",
+                     variant: str = "llvm_ad_rgb") -> dict:
     """Run :func:`measure` on ``ranks`` ranks with the venv's ``mpiexec``; return its JSON."""
     cmd = [find_mpiexec(), *mpiexec_args, "-n", str(ranks), sys.executable, "-m",
            "mi_partpm.experiments.reducebench", "--repeats", str(repeats), "--condition", condition,
-           "--out", str(out_json)]
+           "--variant", variant, "--out", str(out_json)]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
                           env=os.environ.copy())
     if done.returncode != 0:
@@ -111,13 +116,16 @@ def main(argv=None) -> int:
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--condition", choices=CONDITIONS, default="transport")
+    parser.add_argument("--variant", default="llvm_ad_rgb",
+                        help="Mitsuba variant whose arrays are reduced (default llvm_ad_rgb)")
     parser.add_argument("--out", required=True, help="JSON file written by rank 0")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error(f"--repeats must be >= 1, got {args.repeats}")
     from ..backends import comm_world
     comm = comm_world()
-    result = measure(comm, repeats=args.repeats, condition=args.condition)
+    result = measure(comm, repeats=args.repeats, condition=args.condition,
+                     variant=args.variant)
     if comm.rank == 0:
         Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
     return 0

@@ -121,7 +121,7 @@ def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: i
         row["efficiency"] = row["speedup"] * base["ranks"] / row["ranks"]
         row["reduce_share"] = row["time_reduce"] / row["time_render"]
     if bench_repeats > 0:
-        _predict(rows, out, mpiexec_args, bench_repeats, say, timeout, p1_stats)
+        _predict(rows, out, mpiexec_args, bench_repeats, say, timeout, p1_stats, variant)
     with open(out / "scaling.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -151,7 +151,7 @@ def _phase_work(p1_stats) -> PhaseWork:
                      overhead=_median([w.overhead for w in works]))
 
 
-def _predict(rows, out, mpiexec_args, repeats, say, timeout, p1_stats):
+def _predict(rows, out, mpiexec_args, repeats, say, timeout, p1_stats, variant):
     """Micro-benchmark the reduction on every P in both conditions and fit it; predict each
     row's reduction (transport alone and in situ) and, from the first P's work per phase and
     the transport fit alone, its render time (:mod:`.mpimodel`)."""
@@ -163,7 +163,7 @@ def _predict(rows, out, mpiexec_args, repeats, say, timeout, p1_stats):
             p = row["ranks"]
             say(f"P = {p}: reduction micro-benchmark ({condition}) ...")
             benches[p] = run_reduce_bench(p, out / f"reducebench_{condition}_P{p}.json",
-                                          repeats, mpiexec_args, timeout, condition)
+                                          repeats, mpiexec_args, timeout, condition, variant)
             fits[p] = fit_regimes(benches[p]["sizes"], benches[p]["reduce"])
             row[f"time_reduce_pred_{condition}"] = fits[p](row["reduce_bytes_per_rank"])
         if condition == "transport":
