@@ -231,20 +231,23 @@ def check_fits(estimate: MemoryEstimate, what: str = "this render",
     free = available_bytes()
     if free is None or estimate.total <= free:
         return
-    if estimate.eye >= 0.9 * free:
-        # The eye pass alone does not fit: fewer photons would not help.
+    room = free - estimate.eye
+    photons_fit = int(estimate.photons * room / max(estimate.photon_maps, 1) * 0.9) \
+        if room > 0 else 0
+    if photons_fit < 1:
+        # The eye pass alone (nearly) fills what is free: fewer photons would not help.
         share = max(free * 0.9 / max(estimate.eye, 1), 0.0)
         raise MemoryGuardError(
             f"the eye pass (the camera's samples) alone needs about "
-            f"{size_text(estimate.eye)}, but only {size_text(free)} are free"
-            f"{_share_text()}: lower the "
+            f"{size_text(estimate.eye)}, "
+            f"{'but only' if room <= 0 else 'which leaves no room for a photon of the'} "
+            f"{size_text(free)}{' are' if room <= 0 else ''} free{_share_text()}: lower the "
             f"resolution or spp (to about {share:.2g} of the samples per image here); fewer "
             f"photons would not help (their maps take {size_text(estimate.photon_maps)})")
-    fraction = (free - estimate.eye) / max(estimate.photon_maps, 1)
     raise MemoryGuardError(
         f"{what} needs about {estimate.describe()}, but only {size_text(free)} are free"
         f"{_share_text()}: "
-        f"lower {option} (to about {int(estimate.photons * fraction * 0.9):,}"
+        f"lower {option} (to about {photons_fit:,}"
         f"{' per wave' if waves else ''} here){more}, or the resolution / spp (the eye pass "
         f"takes "
         f"{size_text(estimate.eye)})")

@@ -102,6 +102,27 @@ def test_an_eye_pass_too_large_alone_asks_for_fewer_samples(monkeypatch, capsys,
     assert "lower --photons" not in err
 
 
+
+def test_an_eye_pass_that_fits_with_little_room_asks_for_fewer_photons(monkeypatch, capsys,
+                                                                       tmp_path):
+    """An eye pass of 4.6 MB where 5 MB are free leaves room for a few thousand photons:
+    the message said that the eye pass 'alone needs about 4.6 MB, but only 5.0 MB are free'
+    and that fewer photons would not help (the branch took any eye pass over 90% of the
+    free memory), while 4,000 photons render there. It now asks for fewer photons; an eye
+    pass larger than what is free still asks for fewer samples only."""
+    from mi_partpm.cli import main
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "5e6")
+    argv = ["render", "cornell_box", "--resolution", "64x64", "-q", "-o",
+            str(tmp_path / "x.exr")]
+    assert main([*argv, "--photons", "10000"]) == 2
+    err = capsys.readouterr().err
+    assert "lower --photons (to about" in err and "alone needs" not in err
+    assert main([*argv, "--photons", "4000"]) == 0
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "4.5e6")
+    assert main([*argv, "--photons", "10000"]) == 2
+    assert "alone needs about 4.6 MB, but only 4.5 MB are free" in capsys.readouterr().err
+
+
 def test_many_small_maps_fit_where_one_large_map_does_not(monkeypatch):
     """The same 2 x 10^6 photons in 64 maps fit 400 MB, wave by wave."""
     monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "400e6")
