@@ -51,6 +51,12 @@ def find_data_file(name: str, data_dir: Optional[os.PathLike] = None) -> Path:
         label, directory = DATA_ENV, Path(os.environ[DATA_ENV])
     else:
         label, directory = "the package's data folder", PACKAGE_DATA
+    if directory.is_file():
+        # The file itself where its folder was meant: say so, not where to download it.
+        raise MissingDataError(
+            f"{label} must be a directory holding {name!r}, got the file {str(directory)!r}"
+            + (f": give its folder, {str(directory.parent)!r}" if directory.name == name
+               else ""))
     path = directory / name
     if path.is_file():
         return path

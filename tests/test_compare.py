@@ -246,6 +246,15 @@ def test_the_mesh_ships_with_the_package_and_overrides_are_honoured(tmp_path, mo
     assert "Stanford" in capsys.readouterr().err
     with pytest.raises(FileNotFoundError, match="mesh .* is not a file"):
         mi_partpm.load_scene("happy_buddha", mesh=str(tmp_path / "nope.ply"))
+    # The mesh file itself given where its folder is meant: said so, with the folder (the
+    # message sent the user off to download the model the path named).
+    monkeypatch.delenv("PARTPM_DATA")
+    assert main(["render", "happy_buddha", "--data", str(found), "-o",
+                 str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err
+    assert f"data_dir must be a directory holding 'happy_buddha_20k.ply', got the file " \
+        f"{str(found)!r}: give its folder, {str(found.parent)!r}" in err
+    assert "Stanford" not in err
 
 
 # ---------------------------------------------------------------- the comparison
