@@ -94,7 +94,8 @@ def check_ranks(ranks: int, map_count: int):
     """P must not exceed n: a rank without a map would have nothing to do."""
     if ranks > map_count:
         raise ValueError(f"the MPI job has {ranks} ranks but map_count is {map_count}: "
-                         f"{EVERY_RANK_FAILS}, so use at most {map_count} ranks or raise "
+                         f"{EVERY_RANK_FAILS}, so use at most {map_count} "
+                         f"rank{'s' if map_count != 1 else ''} or raise "
                          f"map_count to >= {ranks}")
 
 
@@ -376,7 +377,8 @@ class MPIBackend(Backend):
         return bool(self.comm.allreduce(bool(stop), op=MPI.LOR))
 
     def collect(self, stats: dict) -> dict:
-        stats.update(rank=self.comm.rank, ranks=None)
+        stats.pop("ranks", None)          # a list of an earlier render's ranks
+        stats["rank"] = self.comm.rank
         ranks = self.comm.gather(dict(stats), root=0)   # reporting only
         if self.is_root:
             stats.update(job_stats(ranks), ranks=ranks)

@@ -52,6 +52,7 @@ def test_mpi_two_ranks_give_the_local_image(tmp_path, direct):
     assert s["photons_stored"] == sum(r["photons_stored"] for r in ranks)
     assert all(r["reduce_bytes"] == 48 * 40 * 2 * 4 * 4 for r in ranks)
     assert all(r["time_reduce"] >= 0 and r["map_bytes"] > 0 for r in ranks)
+    assert [r["rank"] for r in ranks] == [0, 1] and not any("ranks" in r for r in ranks)
     assert "reduce MB" in done.stdout   # the per-rank table
 
 

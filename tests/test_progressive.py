@@ -363,7 +363,9 @@ def test_cli_renders_a_scene_file_with_its_own_integrator(tmp_path, capsys, capl
     figures = json.loads(stats.read_text())
     assert (figures["photons_emitted"], figures["map_count"], figures["passes"]) == \
         (100_000, 2, 1)
-    assert "the command line's integrator (--maps) replaces the <integrator>" in caplog.text
+    assert "the command line's partpm (--maps) replaces the <integrator type=\"partpm\">" \
+        in caplog.text
+    assert "add --integrator" not in caplog.text
     # An option of the file's own pm (--k) without --integrator: the command line's partpm
     # refuses it, and the message says how to keep pm (it read "--k applies to
     # --integrator pm only", of a file whose integrator is pm).
@@ -376,6 +378,14 @@ def test_cli_renders_a_scene_file_with_its_own_integrator(tmp_path, capsys, capl
     assert f'--k applies to --integrator pm only (the command line\'s integrator, partpm ' \
         f'unless --integrator says otherwise, replaces the <integrator type="pm"> of {pm}: ' \
         f'add --integrator pm)' in capsys.readouterr().err
+    # An option both integrators take (--photons) replaces the file's pm with the command
+    # line's partpm: the warning names both and how to keep pm (it named neither).
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        assert main(["render", str(pm), "--photons", "2000", "--resolution", "8x8", "-q",
+                     "-o", str(tmp_path / "p.exr")]) == 0
+    assert f'the command line\'s partpm (--photons) replaces the <integrator type="pm"> of ' \
+        f'{pm} (add --integrator pm to render the file\'s with these options)' in caplog.text
 
 
 def test_the_final_radius_is_reported_after_passes_only():

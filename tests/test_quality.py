@@ -410,6 +410,24 @@ def test_final_gather_needs_nee():
         mi.load_dict({"type": "partpm", "final_gather": 4})
 
 
+def test_final_gather_0_is_off_on_the_command_line_as_for_the_prop(tmp_path):
+    """The final_gather prop takes 0 (off, its default); --final-gather 0 was refused
+    ('must be in [1, 4096]'). It now renders as without the option, bit for bit."""
+    import json
+    from mi_partpm.cli import main
+    argv = ["render", "cornell_box", "--photons", "3000", "--resolution", "8x8", "-q",
+            "--direct", "nee"]
+    images = []
+    for extra in ([], ["--final-gather", "0"]):
+        out = tmp_path / f"f{len(images)}.exr"
+        assert main([*argv, *extra, "-o", str(out), "--stats-json",
+                     str(tmp_path / "s.json")]) == 0
+        images.append(np.array(mi.Bitmap(str(out))))
+        assert json.loads((tmp_path / "s.json").read_text())["options"]["final_gather"] == \
+            (int(extra[1]) if extra else None)
+    assert np.array_equal(images[0], images[1])
+
+
 # ---------------------------------------------------------------- all of them together
 
 def test_everything_with_passes_converges(cornell):

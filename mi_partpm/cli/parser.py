@@ -190,9 +190,9 @@ def _quality_options(r):
                    help="rays traced from an eye path's first glossy surface, in [1, 4096] "
                         "(with --glossy trace; default 1)")
     r.add_argument("--final-gather", metavar="RAYS",
-                   type=positive_int("--final-gather", high=MAX_RAYS_PER_POINT),
-                   help="final gather rays per visible point, in [1, 4096] (partpm, needs "
-                        "--direct nee; default: no final gather)")
+                   type=positive_int("--final-gather", low=0, high=MAX_RAYS_PER_POINT),
+                   help="final gather rays per visible point, 0 (off) or in [1, 4096] (partpm; "
+                        "rays need --direct nee; default 0), as the final_gather prop")
 
 
 def _experiment_options(sub):
@@ -222,7 +222,7 @@ def _experiment_options(sub):
                    help="partpm's eye samples per pixel and pass (default 4)")
     v.add_argument("--photons", type=positive_int("--photons", high=MAX_RUN), default=100_000,
                    help="partpm's photons per pass, in [1, 2^32) (default 100000; pm's "
-                        "curve doubles its photons from 10000, or from 4 k when larger)")
+                        "curve doubles its photons from 10000, or from 4 x k when that is more)")
     v.add_argument("--maps", type=positive_int("--maps"), default=8,
                    help="partpm's maps (default 8)")
     v.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),

@@ -213,8 +213,10 @@ def run_render(args) -> int:
     given = _given_options(args)
     from_file = args.scene is not None and scene_file_integrator(args.scene)
     if from_file and given:
-        log.warning("the command line's integrator (%s) replaces the <integrator> of %s",
-                    ", ".join(given), args.scene)
+        log.warning("the command line's %s (%s) replaces the <integrator type=\"%s\"> of %s%s",
+                    args.integrator or "partpm", ", ".join(given), from_file, args.scene,
+                    "" if args.integrator or from_file == "partpm" else
+                    f" (add --integrator {from_file} to render the file's with these options)")
     integrator = None
     if not from_file or given:
         named = args.integrator is not None

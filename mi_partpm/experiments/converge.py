@@ -182,9 +182,9 @@ def _path(s: ConvergeSettings, ref, say) -> list:
     if 4 * most > s.reference_spp:
         # The error of path at n spp against a reference of R spp is its own noise plus the
         # reference's, which is n / R of it: over a quarter, the curve measures the reference.
-        log.warning("path reached %d spp, over a quarter of the reference's %d: its last "
-                    "points measure the reference's own noise too; raise --reference-spp "
-                    "(or lower --time)", most, s.reference_spp)
+        log.warning("path reached %d spp, more than a quarter of the reference's %d spp: its "
+                    "last points measure the reference's own noise too; raise "
+                    "--reference-spp (or lower --time)", most, s.reference_spp)
     return rows
 
 

@@ -187,6 +187,11 @@ def _loader_message(text: str) -> str:
     return " ".join(text.split())
 
 
+def _point_text(p) -> str:
+    """A point as (x, y, z) of 4 significant digits, for messages (-1.2246e-16 reads 0)."""
+    return "(" + ", ".join(f"{0.0 if abs(v) < 1e-9 else v:.4g}" for v in p) + ")"
+
+
 def scene_bounds(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
     """The bounding box of the scene's shapes. Mitsuba 3.9 merges the meshes of shapes that
     share a BSDF (``<ref id=.../>``, or identical inline ones) into one mesh and leaves that
@@ -287,7 +292,7 @@ def _repair_infinite_emitters(scene: mi.Scene, name: Optional[str] = None):
                "some of them): "
                "photon mapping uses the box of their vertices, %s to %s%s (nothing for you "
                "to change)",
-               what, list(true_box.min), list(true_box.max),
+               what, _point_text(true_box.min), _point_text(true_box.max),
                ", also for the emitters at infinity" if infinite else "", level=logging.INFO)
     if infinite:
         centre, half = true_box.center(), true_box.extents() * 0.5
