@@ -30,8 +30,11 @@ fi
 
 if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
     echo "libllvm.sh: no libLLVM >= 16 found; installing Debian's libllvm19" >&2
-    if ! apt-get install -y -q libllvm19 >&2; then
-        apt-get update -q >&2 && apt-get install -y -q libllvm19 >&2
+    # Wait up to 5 minutes for a package manager already at work (unattended upgrades on a
+    # fresh machine hold dpkg's lock) instead of failing at once.
+    APT="apt-get -o DPkg::Lock::Timeout=300"
+    if ! $APT install -y -q libllvm19 >&2; then
+        $APT update -q >&2 && $APT install -y -q libllvm19 >&2 || true
     fi
     if path=$(find_llvm); then
         echo "$path"
