@@ -418,6 +418,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             raise ValueError(f"develop=False is not supported with backend={self.backend.name!r}"
                              f": render with develop=True")
         with self.backend.running():
+            self.backend.start()
             check_emitters(scene)            # before any work: a scene it cannot render
             note_bent_bsdfs(scene)
             seed = _as_int(seed)

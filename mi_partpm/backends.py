@@ -300,6 +300,11 @@ class Backend:
         """Context for a render: what to do when it fails."""
         return nullcontext()
 
+    def start(self):
+        """Called by every process at the start of each render, inside :meth:`running`:
+        what needs all of them at once (not when the integrator is made: a script may make
+        one on some ranks only)."""
+
     def allreduce(self, values, stats: dict):
         """Sum per-lane arrays (``mi.Spectrum`` / ``mi.Float``) over the processes, every
         process receiving the sum: a progressive pass's flux and photon counts."""
@@ -348,8 +353,15 @@ class MPIBackend(Backend):
     def __init__(self, map_count: int):
         self.comm = comm_world()
         check_ranks(self.comm.size, map_count)
-        share_cores(self.comm)
         self.emission_weight = 1.0 if self.comm.rank == 0 else 0.0
+        self._shared = False
+
+    def start(self):
+        # The node's ranks are counted by a split that every rank makes together: here, not
+        # in __init__ (an integrator made on one rank only waited there for the others).
+        if not self._shared:
+            share_cores(self.comm)
+            self._shared = True
 
     @property
     def is_root(self) -> bool:

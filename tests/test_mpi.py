@@ -536,3 +536,33 @@ def test_each_rank_takes_partpm_threads_where_it_is_set():
     assert done.stdout.splitlines() == [
         "3 3", "PARTPM_THREADS (Dr.Jit threads per MPI rank) must be an integer >= 1, got "
         "'abc'", "True"]
+
+
+ONE_RANK_MAKES = """
+import mitsuba as mi
+mi.set_variant("llvm_ad_rgb")
+import mi_partpm
+from mpi4py import MPI
+comm = MPI.COMM_WORLD
+if comm.rank == 0:
+    extra = mi.load_dict({"type": "partpm", "photon_count": 3000, "map_count": 4,
+                          "backend": "mpi"})
+comm.Barrier()
+integrator = mi.load_dict({"type": "partpm", "photon_count": 3000, "map_count": 4,
+                           "backend": "mpi"})
+scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+image = mi.render(scene, integrator=integrator)
+if comm.rank == 0:
+    print("rendered", float(image.numpy().mean()) > 0)
+"""
+
+
+def test_an_mpi_partpm_made_on_one_rank_only_does_not_wait_for_the_others(tmp_path):
+    """Making a partpm of backend "mpi" split the ranks by node (a collective call) in its
+    constructor: a script that made one on rank 0 alone hung there until killed. The split
+    is now made at the start of a render, which every rank makes together."""
+    script = tmp_path / "one_rank.py"
+    script.write_text(ONE_RANK_MAKES)
+    done = _mpi(2, str(script), timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "rendered True" in done.stdout
