@@ -372,7 +372,14 @@ def test_a_failed_scaling_run_is_named_by_the_ranks_own_line():
               "Abort(2) on node 1 (rank 1 in comm 0): application called MPI_Abort\n"
               "terminate called without an active exception\n")
     assert _failure(stderr) == "error on MPI rank 1 of 2: --photons 100 needs about 1 GB"
-    assert _failure("something else\nlast line\n") == "last line"
+    # No rank started (a host mpiexec cannot reach): its first line says why, its last
+    # where it gave up (only the last was shown, 'process manager error waiting for
+    # completion').
+    assert _failure("ssh: Could not resolve hostname badhost\n\n[mpiexec@vm] main: process "
+                    "manager error waiting for completion\n") == \
+        "ssh: Could not resolve hostname badhost ... [mpiexec@vm] main: process manager " \
+        "error waiting for completion"
+    assert _failure("one line\n") == "one line"
     assert _failure("") == "(no message)"
 
 

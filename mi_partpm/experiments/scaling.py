@@ -39,10 +39,16 @@ def _median(values):
 
 def _failure(stderr: str) -> str:
     """Why a render under mpiexec failed: the first line a rank wrote as its error (MPI's and
-    Dr.Jit's own lines about the abort may follow it), else the last line."""
-    lines = stderr.strip().splitlines()
+    Dr.Jit's own lines about the abort may follow it); where no rank said one (mpiexec could
+    not start them: a host it cannot reach), mpiexec's first line, which says why, and its
+    last."""
+    lines = [x for x in stderr.strip().splitlines() if x.strip()]
     said = [x.removeprefix("partpm: ") for x in lines if x.startswith("partpm: error")]
-    return (said or lines or ["(no message)"])[0 if said else -1]
+    if said:
+        return said[0]
+    if not lines:
+        return "(no message)"
+    return lines[0] if len(lines) == 1 else f"{lines[0]} ... {lines[-1]}"
 
 
 def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: int = 100_000,
