@@ -573,3 +573,12 @@ def test_an_mpi_partpm_made_on_one_rank_only_does_not_wait_for_the_others(tmp_pa
     done = _mpi(2, str(script), timeout=60)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "rendered True" in done.stdout
+
+
+def test_mitsubas_own_warnings_are_said_by_rank_0_only(tmp_path):
+    """Mitsuba's warnings (a mono film's: 'Monochrome mode enabled') were printed by every
+    rank, while the package's own are rank 0's."""
+    done = _mpi(2, *CLI[1:], "--variant", "llvm_ad_mono", "--resolution", "8x8", "-o",
+                str(tmp_path / "m.exr"), timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (done.stdout + done.stderr).count("Monochrome mode enabled") == 1, done.stderr

@@ -157,6 +157,10 @@ def setup(args, needs_plugins=True) -> bool:
     except (ImportError, RuntimeError) as e:   # e.g. a CUDA variant without a CUDA device
         raise UsageError(f"--variant {args.variant!r} cannot run on this machine: "
                          f"{last_line(e)}") from None
+    from ..backends import launcher_rank
+    if launcher_rank() > 0:
+        # Mitsuba's own warnings (a mono film's) are rank 0's too, as the package's are.
+        mi.set_log_level(mi.LogLevel.Error)
     import mi_partpm  # noqa: F401  (registers the plugins)
     from ..scenes import scene_names
 
