@@ -311,7 +311,10 @@ class PhotonMapper(mi.SamplingIntegrator):
         waves = memory.plan_waves(sizes, depth, budget, ratio, self.maps_per_wave, share)
         estimate = memory.estimate_render(int(sizes.sum()), depth, width, height, samples,
                                           ratio, waves, sizes, share)
-        memory.check_fits(estimate, self._photons_text(), option=self._photons_option())
+        what = self._photons_text()
+        if maps is None and len(owned) < self.map_count:      # an MPI rank's share
+            what += f" (this process's {len(owned)} of the {self.map_count} maps)"
+        memory.check_fits(estimate, what, option=self._photons_option())
         return [[int(owned[i]) for i in wave] for wave in waves]
 
     def _batch_share(self) -> float:

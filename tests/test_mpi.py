@@ -138,7 +138,7 @@ def test_a_failing_rank_aborts_the_job_with_its_message(how, said):
 @pytest.mark.parametrize("ranks", [1, 2])
 def test_bad_input_found_during_an_mpi_render_reads_as_the_command_lines(tmp_path, ranks):
     """The memory guard refuses the photons on every rank: the job ends with exit 2 and the
-    message the local command gives, naming --photons (it named the prop photon_count with
+    message the local command gives (with the rank's share of the maps), naming --photons (it named the prop photon_count with
     the exception's class before, and exit 1); a job of one rank ends as cleanly (its
     MPI_Abort ran C++ exit handlers under Dr.Jit's threads: 'terminate called', exit 6)."""
     env = {**__import__("os").environ, "PARTPM_MEMORY_LIMIT": "3000000"}
@@ -147,7 +147,10 @@ def test_bad_input_found_during_an_mpi_render_reads_as_the_command_lines(tmp_pat
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
     assert done.returncode == 2, done.stderr[-2000:]
     where = ":" if ranks == 1 else f" on MPI rank 0 of {ranks}:"   # one rank: as locally
-    assert f"partpm: error{where} --photons 100000 needs about" in done.stderr
+    # A rank plans its own maps: the figures are its share's, and the message says so (the
+    # photons of 2 maps of 4 read as the whole job's).
+    share = "" if ranks == 1 else " (this process's 2 of the 4 maps)"
+    assert f"partpm: error{where} --photons 100000{share} needs about" in done.stderr
     assert "MemoryGuardError" not in done.stderr and "photon_count" not in done.stderr
     assert "terminate called" not in done.stderr
 
