@@ -111,6 +111,11 @@ def test_mpi_backend_refuses_develop_false():
         integrator.render(scene, develop=False)
 
 
+def mi_partpm_scenes():
+    import mi_partpm
+    return Path(mi_partpm.__file__).parent / "scenes"
+
+
 def test_mpi_more_ranks_than_maps_is_a_clear_error(tmp_path):
     done = _mpi(3, "-m", "mi_partpm.cli", "render", "cornell_box", "--maps", "2",
                 "--resolution", "8x8", "--backend", "mpi", "-o", str(tmp_path / "x.exr"))
@@ -118,6 +123,20 @@ def test_mpi_more_ranks_than_maps_is_a_clear_error(tmp_path):
     assert "the MPI job has 3 ranks but --maps is 2" in done.stderr
     # Every rank finds it; rank 0 alone says it (three copies ran together before).
     assert done.stderr.count("the MPI job has 3 ranks") == 1, done.stderr
+    # The same of a scene file's own partpm moved onto the ranks: as the command line's,
+    # naming the file (it read "ValueError: the MPI job ...").
+    xml = tmp_path / "two_maps.xml"
+    xml.write_text((Path(mi_partpm_scenes()) / "cornell_box.xml").read_text().replace(
+        '<scene version="3.0.0">', '<scene version="3.0.0"><integrator type="partpm">'
+        '<integer name="photon_count" value="3000"/><integer name="map_count" value="2"/>'
+        '</integrator>', 1))
+    done = _mpi(3, "-m", "mi_partpm.cli", "render", str(xml), "--resolution", "8x8",
+                "--backend", "mpi", "-o", str(tmp_path / "x.exr"))
+    assert done.returncode == 2
+    assert f"the MPI job has 3 ranks but map_count is 2: every rank owns at least one map, " \
+        f"so use at most 2 ranks or raise map_count to >= 3 (map_count of {xml})" \
+        in done.stderr, done.stderr[-2000:]
+    assert "ValueError" not in done.stderr
 
 
 @pytest.mark.parametrize("how, said", [

@@ -253,7 +253,10 @@ def run_render(args) -> int:
             if not type(integrator).__module__.startswith("mitsuba") \
             else integrator.class_name()
         if args.backend is not None and hasattr(integrator, "run_on"):
-            integrator.run_on(args.backend)     # also --backend local over backend="mpi"
+            try:                                # also --backend local over backend="mpi"
+                integrator.run_on(args.backend)
+            except ValueError as e:             # more ranks than the file's maps
+                raise UsageError(f"{e} (map_count of {args.scene})") from None
         elif args.backend == "mpi":
             raise UsageError(f"--backend mpi runs partpm's maps on the ranks; the scene "
                              f"file's integrator is {args.integrator}: render the command "
