@@ -496,3 +496,27 @@ def test_heatmap_is_red_where_brighter_and_blue_where_darker(tmp_path):
     assert red.sum() > 10 and blue.sum() > 10
     # Red (brighter) on the left half of the plot, blue (darker) on the right.
     assert np.flatnonzero(red).mean() < np.flatnonzero(blue)[:blue.sum() // 2].mean()
+
+
+def test_a_scenes_digest_covers_its_includes_and_the_files_it_names(tmp_path):
+    """converge reuses its cached path reference while the scene's digest is the same: the
+    digest hashed the top file alone, so a light made 10x brighter in an included file, or a
+    mesh swapped for a larger one, left the old reference in use (path's relMSE went from
+    1.35 to 192). It now covers the includes and the files plugins name (a $name resolved
+    through its default)."""
+    from mi_partpm.experiments.provenance import scene_digest
+    (tmp_path / "light.xml").write_text('<scene version="3.0.0"><emitter type="constant"/>'
+                                        '</scene>')
+    (tmp_path / "quad.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    xml = tmp_path / "main.xml"
+    xml.write_text('<scene version="3.0.0"><default name="mesh" value="quad.obj"/>'
+                   '<include filename="light.xml"/><shape type="obj"><string name="filename" '
+                   'value="$mesh"/></shape></scene>')
+    digests = [scene_digest(str(xml))]
+    (tmp_path / "light.xml").write_text('<scene version="3.0.0"><emitter type="constant">'
+                                        '<rgb name="radiance" value="10"/></emitter></scene>')
+    digests.append(scene_digest(str(xml)))
+    (tmp_path / "quad.obj").write_text("v 0 0 0\nv 2 0 0\nv 0 2 0\nf 1 2 3\n")
+    digests.append(scene_digest(str(xml)))
+    assert len(set(digests)) == 3, digests
+    assert scene_digest(str(xml)) == digests[-1]          # and stable

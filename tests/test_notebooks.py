@@ -69,6 +69,7 @@ def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkey
     from dataclasses import asdict
 
     from mi_partpm.experiments import compare, notebook, speedup
+    from mi_partpm.experiments.provenance import scene_digest
     monkeypatch.setenv("PARTPM_NOTEBOOK_SIZE", "smoke")
     monkeypatch.setenv("PARTPM_NOTEBOOK_OUT", str(tmp_path))
     runs = []
@@ -76,7 +77,8 @@ def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkey
     def fake_compare(settings, out, progress=print):
         runs.append("compare")
         result = {"settings": {**asdict(settings), "resolution": list(settings.resolution),
-                               "k": 10}, "metrics": {}, "code": notebook.code_version()}
+                               "k": 10}, "metrics": {}, "code": notebook.code_version(),
+                  "scene_sha256": scene_digest(settings.scene)}
         out.mkdir(parents=True, exist_ok=True)
         (out / "metrics.json").write_text(json.dumps(result))
         return result
@@ -85,7 +87,7 @@ def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkey
         runs.append("speedup")
         result = {"photons_emitted": photons, "resolution": list(resolution), "spp": spp,
                   "repeats": repeats, "rows": [{"n": n} for n in maps],
-                  "code": notebook.code_version()}
+                  "code": notebook.code_version(), "scene_sha256": scene_digest(scene)}
         (out / "workloads").mkdir(parents=True, exist_ok=True)
         (out / "workloads" / "meta.json").write_text("{}")
         (out / "speedup.json").write_text(json.dumps(result))
@@ -126,3 +128,26 @@ def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkey
     metrics.write_text(json.dumps(result))
     notebook.compare("cornell_box", progress=said.append)
     assert runs.count("compare") == 4 and "code of unknown version" in said[-1], said
+    # A user's scene file: its run's folder is named after the file's stem (its path made
+    # folders within folders), and a change to a file it includes runs it again (the
+    # results were reused: the key held the settings and the code, not the user's scene).
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    (scenes / "light.xml").write_text('<scene version="3.0.0"><emitter type="constant"/>'
+                                      '</scene>')
+    xml = scenes / "mine.xml"
+    xml.write_text('<scene version="3.0.0"><include filename="light.xml"/></scene>')
+    for helper, kind in ((notebook.compare, "compare"), (notebook.speedup, "speedup")):
+        (scenes / "light.xml").write_text('<scene version="3.0.0"><emitter type="constant"/>'
+                                          '</scene>')
+        before = runs.count(kind)
+        result = helper(str(xml), progress=said.append)
+        assert result["out"] == str(tmp_path / "smoke" / f"{kind}_mine")
+        helper(str(xml), progress=said.append)
+        assert runs.count(kind) == before + 1 and "reusing" in said[-1], said
+        (scenes / "light.xml").write_text('<scene version="3.0.0"><emitter type="constant">'
+                                          '<rgb name="radiance" value="10"/></emitter></scene>')
+        helper(str(xml), progress=said.append)
+        assert runs.count(kind) == before + 2, said
+        assert said[-1].endswith("was made from other scene files (or records none): running "
+                                 "again"), said[-1]

@@ -1,6 +1,7 @@
 """The speedup experiment: per-map estimates gather to the one-map estimate, workloads load."""
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -273,6 +274,16 @@ def test_calibrate_two_scenes_in_one_run(tmp_path, capsys):
     assert main(["calibrate", "cornell_box", "cornell_box", "--out", str(tmp_path / "x")]) \
         == 2
     assert "calibrate's scenes must be distinct" in capsys.readouterr().err
+    # Two different scene files of one name: their folders of --out would clash, and the
+    # message says so (it called them 'not distinct').
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "scene.xml").write_text("<scene version='3.0.0'/>")
+    files = [str(tmp_path / "a" / "scene.xml"), str(tmp_path / "b" / "scene.xml")]
+    assert main(["calibrate", *files, "--out", str(tmp_path / "x")]) == 2
+    assert f"calibrate writes each scene into a folder of --out named after it (scene), and " \
+        f"{files[0]}, {files[1]} would share one: give the scene files different names" in \
+        capsys.readouterr().err
     assert main(["calibrate", "cornell_box", "cornell_box_diffuse", "--check", str(out),
                  "--out", str(tmp_path / "x")]) == 2
     assert "each already predicts the others" in capsys.readouterr().err
@@ -458,3 +469,20 @@ def test_bench_smoke_takes_the_repeats_it_is_given(tmp_path):
     out = tmp_path / "bench.json"
     assert main(["bench", "--smoke", "--repeats", "2", "--out", str(out), "-q"]) == 0
     assert json.loads(out.read_text())["repeats"] == 2
+
+
+def test_experiments_say_they_do_not_use_a_scene_files_own_integrator(tmp_path, caplog):
+    """compare, converge, speedup, calibrate and scaling render with their own options: a
+    scene file's <integrator> (its map_count, radius, max_depth) was ignored in silence."""
+    import mi_partpm
+    from mi_partpm.cli.experiments import check_experiment_scene
+    xml = tmp_path / "own.xml"
+    xml.write_text((Path(mi_partpm.__file__).parent / "scenes" / "cornell_box.xml")
+                   .read_text().replace('<scene version="3.0.0">', '<scene version="3.0.0">'
+                                        '<integrator type="partpm"/>', 1))
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        check_experiment_scene("cornell_box", "compare")
+        assert caplog.text == ""
+        check_experiment_scene(str(xml), "compare")
+    assert f'scene {xml} has an <integrator type="partpm"> of its own, which compare does ' \
+        f'not use' in caplog.text

@@ -40,6 +40,21 @@ def in_settings(message: str) -> str:
     return in_options(message)
 
 
+def check_experiment_scene(scene: str, command: str):
+    """:func:`check_scene_name`, and a word where a scene file has an ``<integrator>`` of its
+    own: the experiments render with their own options, not with it (they ignored it in
+    silence, while ``render`` says when its options replace it)."""
+    check_scene_name(scene)
+    from .render import scene_file_integrator
+    own = scene_file_integrator(scene)
+    if own:
+        import logging
+        logging.getLogger("mi_partpm").warning(
+            "scene %s has an <integrator type=\"%s\"> of its own, which %s does not use: it "
+            "renders with its own options (partpm %s --help lists them and their defaults)",
+            scene, own, command, command)
+
+
 def run_compare(args) -> int:
     if not setup(args):
         return 0
@@ -54,7 +69,7 @@ def run_compare(args) -> int:
     with user_errors(in_settings):
         settings.check()
     check_eye_pass(settings.resolution, settings.spp)     # (path's reference splits its own)
-    check_scene_name(args.scene)
+    check_experiment_scene(args.scene, "compare")
     check_folder(args.out, "--out")
     with user_errors(in_settings):
         result = run_compare(settings, args.out, progress=progress(args))
@@ -98,7 +113,7 @@ def run_speedup(args) -> int:
     with user_errors(in_settings):              # the list's own errors, before any work
         check_speedup(maps, args.photons, args.repeats)
     check_eye_pass(args.resolution, args.spp)
-    check_scene_name(args.scene)
+    check_experiment_scene(args.scene, "speedup")
     check_folder(args.out, "--out")
     with user_errors(in_settings):
         result = run_speedup(args.scene, maps, args.out, args.photons, args.resolution,
@@ -126,7 +141,7 @@ def run_calibrate(args) -> int:
         setup(args)
         # Each option's own error first; the size of the fit last (it is about them all).
         for scene in args.scene:
-            check_scene_name(scene)
+            check_experiment_scene(scene, "calibrate")
         try:
             fracs = [float(v) for v in args.radius_fractions.split(",")]
         except ValueError:
@@ -182,7 +197,7 @@ def run_scaling(args) -> int:
     # (Its first launch found out, and said spp.) The ranks' memory is theirs to check
     # where a hostfile runs them on other machines.
     check_eye_pass(args.resolution, args.spp, here=not args.hostfile)
-    check_scene_name(args.scene)
+    check_experiment_scene(args.scene, "scaling")
     check_folder(args.out, "--out")
     extra = ["-f", args.hostfile] if args.hostfile else []
     try:
@@ -211,7 +226,7 @@ def run_converge(args) -> int:
     with user_errors(in_settings):
         settings.check()
     check_eye_pass(settings.resolution, settings.spp)     # (path's reference splits its own)
-    check_scene_name(args.scene)
+    check_experiment_scene(args.scene, "converge")
     check_folder(args.out, "--out")
     with user_errors(in_settings):
         result = run(settings, args.out, progress=progress(args))

@@ -34,7 +34,7 @@ from ..photonmap import PhotonMaps, fixed_radius
 from ..props import check_choice, check_float, check_int
 from ..scenes import check_scene, load_scene
 from ..timing import timed
-from .provenance import code_version
+from .provenance import code_version, scene_digest
 from .reference import path_in_chunks
 
 __all__ = ["CompareSettings", "calibrate_k", "run_compare", "format_table"]
@@ -229,6 +229,7 @@ def run_compare(settings: CompareSettings, out_dir, progress=print) -> dict:
                     "partpm_estimate": part.stats["time_estimate"], **seconds},
         "best": best_desc(s) if s.best else None,
         "code": code_version(),
+        "scene_sha256": scene_digest(s.scene, s.data_dir),
     }
     _report(out, s, images, result)
     return result

@@ -24,7 +24,8 @@ import os
 from dataclasses import asdict
 from pathlib import Path
 
-from .provenance import code_version
+from .calibrate import scene_dir_name
+from .provenance import code_version, scene_digest
 
 __all__ = ["SIZES", "size", "out_dir", "compare", "speedup", "hwsim_report", "show"]
 
@@ -62,14 +63,20 @@ def _same(recorded: dict, wanted: dict) -> bool:
 
 
 def _reusable(done: Path, what: str, matches, progress) -> dict | None:
-    """The result in ``done`` when ``matches(result)`` (its settings) and its code version is
-    the current one; otherwise None, after a progress line saying why it is run again."""
+    """The result in ``done`` when ``matches(result)`` (its settings), its scene's files are
+    those of the scene now (:func:`~mi_partpm.experiments.provenance.scene_digest`: a user's
+    scene file, its includes and meshes) and its code version is the current one; otherwise
+    None, after a progress line saying why it is run again."""
     progress = progress or (lambda *a: None)
     if not done.is_file():
         return None
     result = json.loads(done.read_text())
     if not matches(result):
         progress(f"{what}: {done} has other settings: running again")
+        return None
+    if result.get("scene_sha256") != scene_digest(what):
+        progress(f"{what}: {done} was made from other scene files (or records none): "
+                 f"running again")
         return None
     current, recorded = code_version(), result.get("code")
     if recorded != current:
@@ -85,7 +92,7 @@ def compare(scene: str, progress=print) -> dict:
     """pm vs partpm vs path on ``scene`` (``metrics.json`` of :func:`run_compare`)."""
     from .compare import CompareSettings, run_compare
     settings = CompareSettings(scene=scene, **SIZES[size()]["compare"])
-    out = out_dir(f"compare_{scene}")
+    out = out_dir(f"compare_{scene_dir_name(scene)}")
     done = out / "metrics.json"
     wanted = {k: v for k, v in asdict(settings).items() if k not in ("k", "data_dir")}
     result = _reusable(done, scene, lambda r: _same(r["settings"], wanted), progress)
@@ -99,7 +106,7 @@ def speedup(scene: str, progress=print) -> dict:
     """The speedup experiment on ``scene`` (``speedup.json`` of :func:`run_speedup`)."""
     from .speedup import run_speedup
     s = SIZES[size()]["speedup"]
-    out = out_dir(f"speedup_{scene}")
+    out = out_dir(f"speedup_{scene_dir_name(scene)}")
     done = out / "speedup.json"
 
     def matches(result):
@@ -121,9 +128,10 @@ def hwsim_report(scene: str, config=None, check_scene: str | None = None) -> dic
     takes seconds), optionally checking its calibration on ``check_scene``'s workloads."""
     from hwsim.config import HardwareConfig
     from hwsim.report import run_report
-    workloads = out_dir(f"speedup_{scene}") / "workloads"
-    check = out_dir(f"speedup_{check_scene}") / "workloads" if check_scene else None
-    out = out_dir(f"hwsim_{scene}")
+    workloads = out_dir(f"speedup_{scene_dir_name(scene)}") / "workloads"
+    check = out_dir(f"speedup_{scene_dir_name(check_scene)}") / "workloads" \
+        if check_scene else None
+    out = out_dir(f"hwsim_{scene_dir_name(scene)}")
     result = run_report(workloads, config or HardwareConfig(), out, check, code=code_version())
     result["out"] = str(out)
     return result

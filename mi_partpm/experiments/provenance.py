@@ -110,12 +110,19 @@ def l1_data_bytes():
 
 
 def scene_digest(scene: str, data_dir=None) -> str:
-    """SHA-256 (16 hex digits) of a scene's file and the data files it names (built-in name
-    or path), for caches that depend on the scene and not on the code."""
+    """SHA-256 (16 hex digits) of a scene (built-in name or path): its file, the files it
+    includes and the files its plugins name (:func:`~mi_partpm.scenes.scene_inputs`), and a
+    built-in scene's data files, for caches that depend on the scene and not on the code (a
+    changed include or mesh made a stale reference look current)."""
     from ..data import find_data_file
-    from ..scenes import SCENE_DATA, scene_path
+    from ..scenes import SCENE_DATA, scene_inputs, scene_path
     path = scene_path(scene)
     digest = hashlib.sha256(path.read_bytes())
+    for file in scene_inputs(path):
+        if file != path.resolve():
+            digest.update(str(file.relative_to(path.resolve().parent)
+                              if file.is_relative_to(path.resolve().parent) else file).encode())
+            digest.update(file.read_bytes())
     for name in SCENE_DATA.get(path.stem, {}).values():
         digest.update(find_data_file(name, data_dir).read_bytes())
     return digest.hexdigest()[:16]

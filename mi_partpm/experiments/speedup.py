@@ -34,7 +34,7 @@ import mitsuba as mi
 import numpy as np
 
 from hwsim.workload import MapWorkloads, save_workloads
-from .provenance import code_version, l1_data_bytes, simd_lanes
+from .provenance import code_version, l1_data_bytes, scene_digest, simd_lanes
 from .. import memory
 from ..estimate import radiance_estimate
 from ..eyepath import first_hits
@@ -305,7 +305,8 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
     result = {"scene": scene_name, "photons_emitted": photons,
               "photons_stored": len(s.traced), "resolution": list(resolution), "spp": spp,
               "queries": int(s.queries), "radius": s.radius, "repeats": repeats,
-              "streams": lcm, "code": code, "rows": rows, "timing_doubts": doubts}
+              "streams": lcm, "code": code, "rows": rows, "timing_doubts": doubts,
+              "scene_sha256": scene_digest(scene_name, data_dir)}
     _write(out, result, rows)
     if save_workload_files:
         save_workloads(out / "workloads", loads, scene=scene_name, radius=s.radius,

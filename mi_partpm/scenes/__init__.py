@@ -67,6 +67,27 @@ def scene_files(path) -> list:
     return found
 
 
+def scene_inputs(path) -> list:
+    """Every file a scene file loads, as far as its text tells: the file, the files it
+    includes (:func:`scene_files`), and the existing files its plugins name (``filename``
+    values: meshes, bitmaps), relative to the naming file's folder, with ``$name`` replaced
+    by the value of a ``<default name="name" .../>``. Sorted, each once."""
+    files = scene_files(path)
+    defaults = {d.get("name"): d.get("value", "") for _, _, root in files
+                for d in root.iter("default")}
+    found = {file for file, _, _ in files}
+    for file, _, root in files:
+        for element in root.iter():
+            if element.get("name") != "filename" or element.tag == "include":
+                continue
+            value = re.sub(r"\$(\w+)", lambda m: defaults.get(m.group(1), m.group(0)),
+                           element.get("value", ""))
+            named = (file.parent / value).resolve() if value else None
+            if named is not None and named.is_file():
+                found.add(named)
+    return sorted(found)
+
+
 def scene_names():
     """Names of the built-in scenes."""
     return sorted(p.stem for p in _HERE.glob("*.xml"))
