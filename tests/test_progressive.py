@@ -633,7 +633,8 @@ def test_render_sets_scene_parameters_with_D(tmp_path, capsys):
             (["-D", "nope=1"], "does not take $nope"),
             (["-D", "light=1", "-D", "light=2"], "-D light is given twice"),
             (["-D", "spp=3"], "-D spp: set the scene's $spp with --spp"),
-            (["-D", "light"], "-D must look like NAME=VALUE")):
+            (["-D", "light"], "-D must look like NAME=VALUE"),
+            (["-D", "light="], "-D light= gives $light no value")):
         try:           # a bad pair is argparse's error (SystemExit), the others main's
             status = main(["render", str(xml), "-q", *defines, "-o", str(tmp_path / "e.exr")])
         except SystemExit as e:

@@ -77,6 +77,9 @@ def scene_parameter(text: str):
         raise argparse.ArgumentTypeError(
             f"-D must look like NAME=VALUE, NAME a scene parameter ($NAME in the scene file: "
             f"letters, digits, _), got {text!r}")
+    if not value:
+        raise argparse.ArgumentTypeError(
+            f"-D {name}= gives ${name} no value: give one (NAME=VALUE)")
     if name in _NOT_DEFINES:
         option = _NOT_DEFINES[name]
         raise argparse.ArgumentTypeError(
