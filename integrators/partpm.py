@@ -108,7 +108,9 @@ class PartPMIntegrator(PhotonMapper):
        * - direct
          - |string|
          - ``photons``: the maps give all reflected light (the paper's direct visualisation);
-           ``nee``: direct light by emitter sampling, the maps give indirect light only.
+           ``nee``: direct light by an emitter sample and a BSDF sample, weighted by
+           multiple importance sampling as in Mitsuba's ``path``; the maps give indirect
+           light only.
            (Default: photons)
        * - hide_emitters
          - |bool|

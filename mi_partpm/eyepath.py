@@ -155,14 +155,29 @@ def unsplit_bsdfs(scene: mi.Scene) -> mi.UInt32:
 
 def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction3f, bsdf,
                  active, lobes=None):
-    """Direct illumination at ``si`` by one emitter sample (visibility tested), through the
-    BSDF's ``lobes`` (default: all)."""
+    """Direct illumination at ``si`` through the BSDF's non-delta ``lobes`` (default: all),
+    as Mitsuba's ``path`` takes it: one emitter sample (visibility tested) and one BSDF
+    sample whose ray may find an emitter, each weighted against the other (multiple
+    importance sampling, power heuristic); a delta light by its emitter sample alone. The
+    emitter sample alone was unbiased but drew directions uniformly from an environment, so
+    an environment-lit scene was very noisy (relMSE 0.41 against path's 0.024 at 4 spp).
+    The BSDF's delta lobes are the eye path's to follow."""
     ctx = lobe_context(lobes)
     ds, emitter_weight = scene.sample_emitter_direction(si, sampler.next_2d(active), True,
                                                         active)
-    active = active & (ds.pdf != 0)
-    f = bsdf.eval(ctx, si, si.to_local(ds.d), active)
-    return dr.select(active, f * emitter_weight, 0.0)
+    sampled = active & (ds.pdf != 0)
+    f, pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), sampled)
+    mis = dr.select(ds.delta, 1.0, _power_heuristic(ds.pdf, pdf))
+    L = dr.select(sampled, f * emitter_weight * mis, 0.0)
+    # The BSDF's sample, weighted against the emitter sample that could have drawn it.
+    bs, weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active),
+                             active)
+    found = active & (bs.pdf > 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    hit = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), found)
+    emitter = hit.emitter(scene, found)
+    lit = found & (emitter != None)   # noqa: E711
+    mis = _emission_mis(scene, si, bs.pdf, hit, lit)
+    return L + dr.select(lit, weight * emitter.eval(hit, lit) * mis, 0.0)
 
 
 @dataclass
@@ -490,8 +505,11 @@ class _LaneSampler:
 
 
 def _power_heuristic(a, b):
+    """a^2 / (a^2 + b^2), finite: 1 (or 1/2) where a (and b) is infinite, as a pdf of a
+    direction at a grazing angle to an area light is (inf / inf was a NaN pixel)."""
     a2, b2 = dr.square(a), dr.square(b)
-    return dr.select(a2 + b2 > 0, a2 / dr.select(a2 + b2 > 0, a2 + b2, 1.0), 0.0)
+    w = dr.select(a2 + b2 > 0, a2 / dr.select(a2 + b2 > 0, a2 + b2, 1.0), 0.0)
+    return dr.select(dr.isinf(a2), dr.select(dr.isinf(b2), 0.5, 1.0), w)
 
 
 def _glossy_direct(scene, sampler, si, bsdf, active):

@@ -74,8 +74,8 @@ def _scene_options(p, compare: bool = False):
                        "(default: the k whose mean radius matches partpm's)" if compare
                        else "(default 50)"))
     p.add_argument("--direct", choices=("photons", "nee"), default="photons",
-                   help="direct light from the maps (the paper's) or by emitter sampling "
-                        "(default photons)")
+                   help="direct light from the maps (the paper's) or by emitter and BSDF "
+                        "sampling with MIS, as path (default photons)")
     p.add_argument("--spp", type=positive_int("--spp"),
                    help="samples per pixel, >= 1 " + (
                        "(default 4)" if compare else "(default: the scene's; 4 for the "
