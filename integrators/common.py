@@ -314,7 +314,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         what = self._photons_text()
         if maps is None and len(owned) < self.map_count:      # an MPI rank's share
             what += f" (this process's {len(owned)} of the {self.map_count} maps)"
-        memory.check_fits(estimate, what, option=self._photons_option())
+        memory.check_fits(estimate, what, option=self._photons_option(),
+                          asked=self._photons_asked())
         return [[int(owned[i]) for i in wave] for wave in waves]
 
     def _batch_share(self) -> float:
@@ -332,6 +333,10 @@ class PhotonMapper(mi.SamplingIntegrator):
     def _photons_text(self) -> str:
         """The props that set the photons and their values."""
         return ", ".join(f"{prop} = {value}" for prop, value in self._count_props())
+
+    def _photons_asked(self) -> int:
+        """The value of what :meth:`_photons_option` names: the photons of every layer."""
+        return sum(value for _, value in self._count_props())
 
     def _photons_option(self) -> str:
         """What to lower: photon_count, or its sum with the caustic maps' photons."""
@@ -351,7 +356,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                                               self._stored_ratio(maps), batch_share=share)
             memory.check_fits(estimate, f"{self._photons_text()} (projected from the first "
                                         f"{done:,} photons traced)",
-                              option=self._photons_option())
+                              option=self._photons_option(), asked=self._photons_asked())
         return check_during
 
     def _add_stats(self, **values):
@@ -522,7 +527,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             elif self.min_bounce() > 1:
                 log.warning("no photon was stored: direct = '%s' stores only light that "
                             "bounced at least once, and none reached a surface with a "
-                            "non-delta BSDF (direct light comes from emitter sampling)",
+                            "non-delta BSDF (direct light is sampled instead)",
                             self.params.direct)
             else:
                 traced = self.backend.total(int(self.stats.get("photons_traced", 0)))

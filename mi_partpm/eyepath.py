@@ -1,10 +1,11 @@
 """Eye paths of a photon mapper: from the camera through delta bounces to visible points.
 
 Step 2 of the paper's algorithm: shoot eye rays and intersect them with the scene. A path
-follows mirror and glass (delta) lobes; every hit whose BSDF has a non-delta lobe becomes a
-*visible point*, where the photon maps give the reflected radiance (and, with ``nee``, emitter
-sampling gives the direct part). Emission is added where the camera sees an emitter directly
-or through delta bounces, the only paths the estimates do not already count.
+follows mirror and glass (delta) lobes; every hit whose BSDF has a non-delta lobe becomes
+a *visible point*, where the photon maps give the reflected radiance (and, with ``nee``,
+an emitter sample and a BSDF sample, weighted by MIS, give the direct part). Emission is
+added where the camera sees an emitter directly or through delta bounces, the only paths
+the estimates do not already count.
 
 :func:`eye_paths` runs all paths of a wavefront together, one step per segment (a Python loop
 over depth, the lanes masked, never compacted, so every lane draws the same random numbers in
@@ -13,7 +14,7 @@ the visible points, compacted into one buffer: the estimate then runs over that 
 coherent (Morton) order instead of inside the path loop.
 
 ``max_depth`` counts the whole light path, as Mitsuba's ``path`` does: at a hit e segments from
-the camera, emission counts if e <= max_depth, emitter sampling if e + 1 <= max_depth and
+the camera, emission counts if e <= max_depth, direct light if e + 1 <= max_depth and
 photons of b segments if e + b <= max_depth.
 """
 from __future__ import annotations
@@ -160,7 +161,8 @@ def direct_light(scene: mi.Scene, sampler: mi.Sampler, si: mi.SurfaceInteraction
     sample whose ray may find an emitter, each weighted against the other (multiple
     importance sampling, power heuristic); a delta light by its emitter sample alone. The
     emitter sample alone was unbiased but drew directions uniformly from an environment, so
-    an environment-lit scene was very noisy (relMSE 0.41 against path's 0.024 at 4 spp).
+    an environment-lit scene was very noisy (a ball on a floor under a sky, at 4 spp: relMSE
+    0.121 against path's 0.0064; now 0.0088).
     The BSDF's delta lobes are the eye path's to follow."""
     ctx = lobe_context(lobes)
     ds, emitter_weight = scene.sample_emitter_direction(si, sampler.next_2d(active), True,
@@ -269,7 +271,8 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
     rr_depth : int
         Segment count from which Russian roulette may end a delta chain.
     nee : bool
-        Add direct light by emitter sampling (the maps then hold indirect light only).
+        Add direct light by emitter and BSDF sampling with MIS (the maps then hold
+        indirect light only).
     hide_emitters : bool
         Emitters seen directly by the camera are black.
     emission : float

@@ -224,10 +224,12 @@ LOWER_DEPTH = ", or lower max_depth"
 
 def check_fits(estimate: MemoryEstimate, what: str = "this render",
                option: str = "photon_count", more: str = MORE_MAPS + LOWER_DEPTH,
-               waves: bool = True):
+               waves: bool = True, asked: Optional[int] = None):
     """Raise :class:`MemoryGuardError` when ``estimate`` exceeds the free memory. The
-    message says to lower ``option`` (what sets the photons; per wave with ``waves``), or
-    what ``more`` adds, or the eye samples."""
+    message says to lower ``option`` (what sets the photons, to a value for it where its
+    value ``asked`` is given: the photons of every wave and every rank scale with it;
+    otherwise a count per wave with ``waves``), or what ``more`` adds, or the eye
+    samples."""
     free = available_bytes()
     if free is None or estimate.total <= free:
         return
@@ -247,8 +249,10 @@ def check_fits(estimate: MemoryEstimate, what: str = "this render",
     raise MemoryGuardError(
         f"{what} needs about {estimate.describe()}, but only {size_text(free)} are free"
         f"{_share_text()}: "
-        f"lower {option} (to about {photons_fit:,}"
-        f"{' per wave' if waves else ''} here){more}, or the resolution / spp (the eye pass "
+        f"lower {option} (to about "
+        f"{int(asked * photons_fit / max(estimate.photons, 1)) if asked else photons_fit:,}"
+        f"{' per wave' if waves and not asked else ''} here){more}, or the resolution / spp "
+        f"(the eye pass "
         f"takes "
         f"{size_text(estimate.eye)})")
 

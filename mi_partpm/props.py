@@ -35,7 +35,8 @@ MAX_RADIUS = 1e18
 #: on the Cornell box: 0.025, with 0.0125 close).
 PROGRESSIVE_RADIUS_FRACTION = 0.025
 
-#: How direct illumination is computed: from the photon maps, or by emitter sampling.
+#: How direct illumination is computed: from the photon maps, or by emitter and BSDF
+#: sampling weighted by MIS (as Mitsuba's path).
 DIRECT_MODES = ("photons", "nee")
 #: Density kernels (:data:`mi_partpm.estimate.KERNELS`).
 KERNEL_NAMES = ("box", "simpson", "epanechnikov", "cone")

@@ -520,3 +520,20 @@ def test_a_scenes_digest_covers_its_includes_and_the_files_it_names(tmp_path):
     digests.append(scene_digest(str(xml)))
     assert len(set(digests)) == 3, digests
     assert scene_digest(str(xml)) == digests[-1]          # and stable
+    # Names inside an included file are found as Mitsuba finds them: in the main file's
+    # folder (the include's own folder was searched: the mesh Mitsuba loads was missed),
+    # and so is an include inside an include.
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "inc.xml").write_text(
+        '<scene version="3.0.0"><include filename="sub/inc2.xml"/><shape type="obj">'
+        '<string name="filename" value="quad.obj"/></shape></scene>')
+    (tmp_path / "sub" / "inc2.xml").write_text('<scene version="3.0.0"/>')
+    top = tmp_path / "top.xml"
+    top.write_text('<scene version="3.0.0"><include filename="sub/inc.xml"/></scene>')
+    from mi_partpm.scenes import scene_inputs
+    assert [p.name for p in scene_inputs(top)] == ["quad.obj", "inc.xml", "inc2.xml",
+                                                   "top.xml"], scene_inputs(top)
+    mi.load_file(str(top))                                 # (Mitsuba loads it so)
+    before = scene_digest(str(top))
+    (tmp_path / "quad.obj").write_text("v 0 0 0\nv 3 0 0\nv 0 3 0\nf 1 2 3\n")
+    assert scene_digest(str(top)) != before

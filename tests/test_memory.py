@@ -102,7 +102,6 @@ def test_an_eye_pass_too_large_alone_asks_for_fewer_samples(monkeypatch, capsys,
     assert "lower --photons" not in err
 
 
-
 def test_an_eye_pass_that_fits_with_little_room_asks_for_fewer_photons(monkeypatch, capsys,
                                                                        tmp_path):
     """An eye pass of 4.6 MB where 5 MB are free leaves room for a few thousand photons:
@@ -117,6 +116,11 @@ def test_an_eye_pass_that_fits_with_little_room_asks_for_fewer_photons(monkeypat
     assert main([*argv, "--photons", "10000"]) == 2
     err = capsys.readouterr().err
     assert "lower --photons (to about" in err and "alone needs" not in err
+    # The count is one for --photons, the whole render's (it was one wave's: 494 of the 8
+    # waves' 10,000, where 4,000 render), and it renders.
+    target = int(err.split("lower --photons (to about ")[1].split(" here")[0].replace(",", ""))
+    assert 2000 < target < 10_000, err
+    assert main([*argv, "--photons", str(target)]) == 0
     assert main([*argv, "--photons", "4000"]) == 0
     monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "4.5e6")
     assert main([*argv, "--photons", "10000"]) == 2
@@ -160,7 +164,7 @@ def test_caustic_maps_are_planned_at_their_own_photons_stored_per_emitted(monkey
     text = str(e.value.__cause__)
     assert "photon_count = 200000, caustic_photon_count = 200000 needs about" in text
     target = int(text.split("lower photon_count + caustic_photon_count (to about ")[1]
-                 .split(" per wave")[0].replace(",", ""))
+                 .split(" here")[0].replace(",", ""))
     assert 0 < target < 400_000
 
 

@@ -157,9 +157,9 @@ def test_a_failing_rank_aborts_the_job_with_its_message(how, said):
 @pytest.mark.parametrize("ranks", [1, 2])
 def test_bad_input_found_during_an_mpi_render_reads_as_the_command_lines(tmp_path, ranks):
     """The memory guard refuses the photons on every rank: the job ends with exit 2 and the
-    message the local command gives (with the rank's share of the maps), naming --photons (it named the prop photon_count with
-    the exception's class before, and exit 1); a job of one rank ends as cleanly (its
-    MPI_Abort ran C++ exit handlers under Dr.Jit's threads: 'terminate called', exit 6)."""
+    message the local command gives (with the rank's share of the maps), naming --photons
+    (it named the prop photon_count with the exception's class before, and exit 1); a job
+    of one rank ends as cleanly (its MPI_Abort ran C++ exit handlers under Dr.Jit's threads: 'terminate called', exit 6)."""
     env = {**__import__("os").environ, "PARTPM_MEMORY_LIMIT": "3000000"}
     cmd = [find_mpiexec(), "-n", str(ranks), *CLI, "--maps", "4", "--photons", "100000",
            "--resolution", "16x16", "-o", str(tmp_path / "x.exr")]
@@ -402,6 +402,9 @@ def test_a_failed_scaling_run_is_named_by_the_ranks_own_line():
         "ssh: Could not resolve hostname badhost ... [mpiexec@vm] main: process manager " \
         "error waiting for completion"
     assert _failure("one line\n") == "one line"
+    # A rank that died in Python's traceback before it could say its error: the exception.
+    assert _failure("Traceback (most recent call last):\n  File \"x.py\", line 1\n"
+                    "ValueError: bad\n") == "ValueError: bad"
     assert _failure("") == "(no message)"
 
 

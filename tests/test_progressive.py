@@ -631,6 +631,7 @@ def test_render_sets_scene_parameters_with_D(tmp_path, capsys):
     capsys.readouterr()
     for defines, message in (
             (["-D", "nope=1"], "does not take $nope"),
+            (["-D", "ligh=1"], "does not take $ligh"),     # a prefix of $light is not it
             (["-D", "light=1", "-D", "light=2"], "-D light is given twice"),
             (["-D", "spp=3"], "-D spp: set the scene's $spp with --spp"),
             (["-D", "light"], "-D must look like NAME=VALUE"),

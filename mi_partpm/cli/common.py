@@ -11,10 +11,10 @@ from ..backends import interrupted  # noqa: F401  (the command line's name for i
 from ..props import check_float, check_int
 
 __all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
-           "radius_float", "int_list", "scene_parameter", "setup", "progress", "last_line", "interrupted",
-           "write_atomic", "check_writable", "check_folder", "check_scene_name",
-           "check_variant_name", "check_eye_pass", "user_errors", "MAX_PIXELS", "MADE_FOLDERS",
-           "remove_made_folders"]
+           "radius_float", "int_list", "scene_parameter", "scene_parameters", "setup",
+           "progress", "last_line", "interrupted", "write_atomic", "check_writable",
+           "check_folder", "check_scene_name", "check_variant_name", "check_eye_pass",
+           "user_errors", "MAX_PIXELS", "MADE_FOLDERS", "remove_made_folders"]
 
 #: The most pixels a film may have: Mitsuba indexes a film's values (4 or 5 a pixel) with
 #: 32-bit integers (60000 x 60000 failed inside Mitsuba's tensor).

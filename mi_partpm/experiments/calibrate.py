@@ -100,7 +100,7 @@ def run_calibration(scene_name: str, out_dir, leaf_sizes: Sequence[int] = (8, 32
 def scene_dir_name(scene_name: str) -> str:
     """The folder of a scene in a several-scene run: a built-in name, or an XML file's
     stem."""
-    return Path(scene_name).stem if scene_name.endswith(".xml") else scene_name
+    return Path(scene_name).stem if scene_name.lower().endswith(".xml") else scene_name
 
 
 def run_calibrations(scene_names: Sequence[str], out_dir,

@@ -48,7 +48,9 @@ def _failure(stderr: str) -> str:
         return said[0]
     if not lines:
         return "(no message)"
-    return lines[0] if len(lines) == 1 else f"{lines[0]} ... {lines[-1]}"
+    if len(lines) == 1 or lines[0].startswith("Traceback"):   # a Python error: its last line
+        return lines[-1]
+    return f"{lines[0]} ... {lines[-1]}"
 
 
 def run_scaling(scene: str, ranks: Sequence[int], maps: int, out_dir, photons: int = 100_000,

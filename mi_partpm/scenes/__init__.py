@@ -31,8 +31,9 @@ from ..props import check_int
 
 log = logging.getLogger("mi_partpm")
 
-__all__ = ["scene_names", "scene_path", "scene_files", "load_scene", "check_scene", "check_sensor",
-           "scene_bounds", "scene_size", "infinite_sphere", "surface_shapes"]
+__all__ = ["scene_names", "scene_path", "scene_files", "scene_inputs", "load_scene",
+           "check_scene", "check_sensor", "scene_bounds", "scene_size", "infinite_sphere",
+           "surface_shapes"]
 
 _HERE = Path(__file__).resolve().parent
 
@@ -40,13 +41,25 @@ _HERE = Path(__file__).resolve().parent
 SCENE_DATA = {"happy_buddha": {"mesh": "happy_buddha_20k.ply"}}
 
 
+def _resolve(name: str, main: Path, including: Path) -> Optional[Path]:
+    """The file ``name`` of a scene as Mitsuba's file resolver finds it: in the main scene
+    file's folder (also for a name inside an included file), then in the working folder;
+    the including file's own folder last. None where none holds it."""
+    for folder in (main.parent, Path.cwd(), including.parent):
+        candidate = (folder / name).resolve()
+        if candidate.is_file():
+            return candidate
+    return None
+
+
 def scene_files(path) -> list:
     """``(file, text, root element)`` of a scene file and of every file it includes
-    (``<include filename="..."/>``, relative to the including file's folder, as Mitsuba
-    resolves it), in document order, each once; a file that cannot be read or parsed is
-    left out (Mitsuba's loader then says what is wrong with it)."""
+    (``<include filename="..."/>``, found as Mitsuba finds it: :func:`_resolve`), in
+    document order, each once; a file that cannot be read or parsed is left out
+    (Mitsuba's loader then says what is wrong with it)."""
     import xml.etree.ElementTree as ElementTree
     found, seen = [], set()
+    main = Path(path).resolve()
 
     def visit(file: Path):
         file = file.resolve()
@@ -61,29 +74,35 @@ def scene_files(path) -> list:
         found.append((file, text, root))
         for element in root.iter("include"):
             name = element.get("filename")
-            if name:
-                visit(file.parent / name)
-    visit(Path(path))
+            named = _resolve(name, main, file) if name else None
+            if named is not None:
+                visit(named)
+    visit(main)
     return found
 
 
 def scene_inputs(path) -> list:
     """Every file a scene file loads, as far as its text tells: the file, the files it
     includes (:func:`scene_files`), and the existing files its plugins name (``filename``
-    values: meshes, bitmaps), relative to the naming file's folder, with ``$name`` replaced
-    by the value of a ``<default name="name" .../>``. Sorted, each once."""
+    values: meshes, bitmaps, spectra), found as Mitsuba finds them (:func:`_resolve`), with
+    ``$name`` replaced by the value of a ``<default name="name" .../>``. Sorted, each
+    once."""
     files = scene_files(path)
-    defaults = {d.get("name"): d.get("value", "") for _, _, root in files
-                for d in root.iter("default")}
+    main = Path(path).resolve()
+    defaults = {}
+    for _, _, root in files:                     # the first default of a name holds
+        for d in root.iter("default"):
+            defaults.setdefault(d.get("name"), d.get("value", ""))
     found = {file for file, _, _ in files}
     for file, _, root in files:
         for element in root.iter():
-            if element.get("name") != "filename" or element.tag == "include":
+            if element.get("name") != "filename" and not (
+                    element.tag == "spectrum" and element.get("filename")):
                 continue
             value = re.sub(r"\$(\w+)", lambda m: defaults.get(m.group(1), m.group(0)),
-                           element.get("value", ""))
-            named = (file.parent / value).resolve() if value else None
-            if named is not None and named.is_file():
+                           element.get("value") or element.get("filename") or "")
+            named = _resolve(value, main, file) if value else None
+            if named is not None:
                 found.add(named)
     return sorted(found)
 
@@ -173,13 +192,14 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
             "<include" not in text:
         raise ValueError(f"scene file {str(path)!r} has no sensor: add a camera to render it")
     for name in params:
-        if f"${name}" not in text:
+        if not re.search(rf"\${re.escape(name)}(?!\w)", text):   # $sp is not $spp's
             option = {"resx": "the resolution (--resolution)", "resy": "the resolution "
                       "(--resolution)", "spp": "the sample count (--spp)"}.get(name)
             if option is None:          # a parameter of the caller's (-D NAME=VALUE)
                 raise ValueError(
                     f"scene file {str(path)!r} does not take ${name} (no \"${name}\" in it "
-                    f"or the files it includes), so {name} (-D {name}=...) cannot be set")
+                    f"or the files it includes), so it cannot be set (load_scene's {name}=, "
+                    f"render's -D {name}=...)")
             raise ValueError(
                 f"scene file {str(path)!r} does not take ${name}, so {option} cannot be set: "
                 f"use value=\"${name}\" in it (with <default name=\"{name}\" .../>), or with "
