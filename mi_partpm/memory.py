@@ -224,12 +224,11 @@ LOWER_DEPTH = ", or lower max_depth"
 
 def check_fits(estimate: MemoryEstimate, what: str = "this render",
                option: str = "photon_count", more: str = MORE_MAPS + LOWER_DEPTH,
-               waves: bool = True, asked: Optional[int] = None):
+               asked: Optional[int] = None):
     """Raise :class:`MemoryGuardError` when ``estimate`` exceeds the free memory. The
-    message says to lower ``option`` (what sets the photons, to a value for it where its
-    value ``asked`` is given: the photons of every wave and every rank scale with it;
-    otherwise a count per wave with ``waves``), or what ``more`` adds, or the eye
-    samples."""
+    message says to lower ``option`` (what sets the photons) to a value for it, scaled from
+    its value ``asked`` (default the estimate's own photons: the photons of every wave and
+    every rank scale with it), or what ``more`` adds, or the eye samples."""
     free = available_bytes()
     if free is None or estimate.total <= free:
         return
@@ -246,15 +245,11 @@ def check_fits(estimate: MemoryEstimate, what: str = "this render",
             f"{size_text(free)}{' are' if room <= 0 else ''} free{_share_text()}: lower the "
             f"resolution or spp (to about {share:.2g} of the samples per image here); fewer "
             f"photons would not help (their maps take {size_text(estimate.photon_maps)})")
+    target = int((asked or estimate.photons) * photons_fit / max(estimate.photons, 1))
     raise MemoryGuardError(
         f"{what} needs about {estimate.describe()}, but only {size_text(free)} are free"
-        f"{_share_text()}: "
-        f"lower {option} (to about "
-        f"{int(asked * photons_fit / max(estimate.photons, 1)) if asked else photons_fit:,}"
-        f"{' per wave' if waves and not asked else ''} here){more}, or the resolution / spp "
-        f"(the eye pass "
-        f"takes "
-        f"{size_text(estimate.eye)})")
+        f"{_share_text()}: lower {option} (to about {target:,} here){more}, or the "
+        f"resolution / spp (the eye pass takes {size_text(estimate.eye)})")
 
 
 def _share_text() -> str:

@@ -6,6 +6,7 @@ Each reads its options, calls the experiment in :mod:`mi_partpm.experiments` (or
 """
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 
@@ -16,6 +17,8 @@ from .common import (UsageError, check_eye_pass, check_folder, check_scene_name,
 
 __all__ = ["run_compare", "run_speedup", "run_bench", "run_hwsim", "run_scaling",
            "run_converge", "run_calibrate"]
+
+log = logging.getLogger("mi_partpm")
 
 #: The options of the settings' fields that :func:`in_settings` names.
 SETTING_OPTIONS = {"photons": "--photons", "maps": "--maps", "spp": "--spp",
@@ -48,8 +51,7 @@ def check_experiment_scene(scene: str, command: str):
     from .render import scene_file_integrator
     own = scene_file_integrator(scene)
     if own:
-        import logging
-        logging.getLogger("mi_partpm").warning(
+        log.warning(
             "scene %s has an <integrator type=\"%s\"> of its own, which %s does not use: it "
             "renders with its own options (partpm %s --help lists them and their defaults)",
             scene, own, command, command)

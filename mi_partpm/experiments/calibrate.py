@@ -130,13 +130,13 @@ def run_calibrations(scene_names: Sequence[str], out_dir,
     names = list(scene_names)
     if not names:
         raise ValueError("calibrate needs at least one SCENE")
+    from ..scenes import scene_path
+    if len({scene_path(n).resolve() for n in names}) != len(names):
+        raise ValueError(f"calibrate's scenes must be distinct, got {names}")
     folders = [scene_dir_name(n) for n in names]
     if len(set(folders)) != len(names):
         same = sorted({f for f in folders if folders.count(f) > 1})
         clash = [n for n in names if scene_dir_name(n) in same]
-        if len({str(Path(n).resolve()) if n.endswith(".xml") else n for n in clash}) < \
-                len(clash):
-            raise ValueError(f"calibrate's scenes must be distinct, got {names}")
         raise ValueError(f"calibrate writes each scene into a folder of --out named after it "
                          f"({', '.join(same)}), and {', '.join(clash)} would share one: give "
                          f"the scene files different names")

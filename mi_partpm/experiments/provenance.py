@@ -116,12 +116,12 @@ def scene_digest(scene: str, data_dir=None) -> str:
     changed include or mesh made a stale reference look current)."""
     from ..data import find_data_file
     from ..scenes import SCENE_DATA, scene_inputs, scene_path
-    path = scene_path(scene)
+    path = scene_path(scene).resolve()
     digest = hashlib.sha256(path.read_bytes())
     for file in scene_inputs(path):
-        if file != path.resolve():
-            digest.update(str(file.relative_to(path.resolve().parent)
-                              if file.is_relative_to(path.resolve().parent) else file).encode())
+        if file != path:                         # each other file by its name and bytes
+            digest.update(str(file.relative_to(path.parent) if file.is_relative_to(path.parent)
+                              else file).encode())
             digest.update(file.read_bytes())
     for name in SCENE_DATA.get(path.stem, {}).values():
         digest.update(find_data_file(name, data_dir).read_bytes())

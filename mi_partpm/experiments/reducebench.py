@@ -20,6 +20,7 @@ import os
 import subprocess
 import sys
 import time
+from functools import partial
 from pathlib import Path
 from typing import Sequence
 
@@ -58,10 +59,9 @@ def measure(comm, sizes: Sequence[int] = SIZES, repeats: int = 15, warmup: int =
     if condition == "in_situ":
         from ..backends import share_cores
         share_cores(comm)
-        work = lambda: _drjit_work(Float)  # noqa: E731
+        work = partial(_drjit_work, Float)
     out = {"ranks": comm.size, "condition": condition, "variant": variant, "sizes": [],
-           "reduce": [],
-           "pingpong": [], "repeats": repeats}
+           "reduce": [], "pingpong": [], "repeats": repeats}
     for size in sizes:
         count = max(1, size // 4)
         send = np.ones(count, dtype=np.float32)

@@ -178,7 +178,7 @@ def _setup(scene_name, photons, streams, resolution, spp, radius_fraction, seed,
         memory.check_fits(estimate, f"--photons {photons}" + (
             f" (projected from the first {done:,} photons traced)" if done else "") + (
             f" with {forests} forests kept" if forests > 1 else ""),
-            option="--photons", more=more, waves=False)
+            option="--photons", more=more)
     fits()
     say(f"tracing {photons} photons into {streams} streams ...")
     traced = trace_photons(scene, photons, streams, seed, memory_check=fits)
