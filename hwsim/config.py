@@ -214,6 +214,10 @@ class PEConfig:
         if self.costs == "fitted" and not self.fitted_costs:
             raise ValueError('pe.costs = "fitted" needs pe.fitted_costs: the costs file '
                              "'partpm calibrate' writes (fitted_costs.toml)")
+        if self.costs == "assumed" and self.fitted_costs:
+            raise ValueError(f'pe.fitted_costs = {self.fitted_costs!r} is read only with '
+                             f'pe.costs = "fitted" (costs = "assumed" runs on the '
+                             f"cycles_per_* keys): set costs = \"fitted\" or leave it out")
         seconds = ("seconds_per_node", "seconds_per_test", "seconds_per_found",
                    "seconds_per_map")
         for name in seconds:
@@ -221,8 +225,10 @@ class PEConfig:
         _check_number("pe", "threads", self.threads, 1, low_open=False, integer=True)
         _whole_ints(self)
         if self.costs == "fitted" and not any(getattr(self, name) for name in seconds):
-            raise ValueError(f'pe.costs = "fitted" with no fitted cost: read '
-                             f"{self.fitted_costs} with PEConfig.from_file or load_config")
+            raise ValueError(f'pe.costs = "fitted" with no fitted cost: every seconds_per_* '
+                             f"is 0 ({self.fitted_costs}: a fit that found no time per action "
+                             f"needs a larger workload, or set costs = \"assumed\"; in Python "
+                             f"PEConfig.from_file reads a costs file)")
 
     @classmethod
     def from_file(cls, path) -> "PEConfig":

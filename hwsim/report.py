@@ -5,8 +5,8 @@ simulated with and without the gather; the speedup against n = 1 shows what the 
 with the configured gather network and, in ``networks``, with every other one.
 For the largest n, a sweep over PE counts P (maps shared round-robin, a PE's maps sharing its
 SRAM) and gather networks (a bus; trees and rings, pipelined and store-and-forward) shows
-where adding PEs stops paying: the first P from which doubling P shortens the frame by less
-than 5%. A second sweep puts every map in DRAM (no SRAM) and lets the PEs share 1 or 4 DRAM
+where adding PEs stops paying: the first P from which the next P of the sweep (twice as many, or n)
+shortens the frame by less than 5%. A second sweep puts every map in DRAM (no SRAM) and lets the PEs share 1 or 4 DRAM
 channels, or have one each: the discrete-event model shows where contention for the
 channels, not the gather, ends the scaling. Every row of every table (per n, sweep,
 contention, sensitivity) carries the bytes a frame reads from DRAM over all PEs
@@ -41,19 +41,37 @@ ASSUMED = ("cycles_per_node", "cycles_per_test", "cycles_per_accumulate",
 
 def _scaled(config, name, factor):
     """``config`` with the constant ``name`` ("key" or "group.key") times ``factor`` (integers
-    rounded, and kept >= 1)."""
+    rounded, and kept >= 1), or None where the scaled value leaves the constant's allowed
+    range (a value near the top of it, doubled)."""
     group, _, key = name.rpartition(".")
     value = getattr(getattr(config, group) if group else config, key)
     new = max(1, int(round(value * factor))) if isinstance(value, int) else value * factor
-    return config.with_(**({group: {key: new}} if group else {key: new}))
+    try:
+        return config.with_(**({group: {key: new}} if group else {key: new}))
+    except ValueError:
+        return None
+
+
+def _ratio(a: float, b: float) -> float:
+    """``a / b``, NaN where ``b`` is 0 (a config whose every energy constant is 0)."""
+    return a / b if b else float("nan")
+
+
+def swept_constants(config) -> tuple:
+    """The constants the sensitivity sweep varies: :data:`ASSUMED`, less the ``cycles_per_*``
+    with fitted compute costs."""
+    fitted = config.pe.costs == "fitted"
+    return tuple(n for n in ASSUMED if not (fitted and n in CYCLE_KEYS))
 
 
 def sensitivity(config, loads, factors=(0.5, 2.0)) -> list:
     """Each assumed constant times 0.5 and 2: the speedup at the largest n (with the gather,
     one PE per map), the gather's share of the frame and the energy of a frame at the largest
-    n over that at the smallest, against the unchanged config. With fitted compute costs
-    (``[pe] costs = "fitted"``) the ``cycles_per_*`` constants are not assumed, and not
-    swept."""
+    n over that at the smallest (NaN where a frame costs no energy), against the unchanged
+    config. With fitted compute costs (``[pe] costs = "fitted"``) the ``cycles_per_*``
+    constants are not assumed, and not swept (:func:`swept_constants`). A scaling that leaves
+    a constant's allowed range (a value near its top, doubled) has a row with ``"skipped"``
+    saying so and None for every figure."""
     ns = sorted(loads)
     first, last = ns[0], ns[-1]
 
@@ -61,13 +79,17 @@ def sensitivity(config, loads, factors=(0.5, 2.0)) -> list:
         a = simulate(cfg.with_(pe_count=first), loads[first])
         b = simulate(cfg.with_(pe_count=last), loads[last])
         return {"speedup": a.frame_cycles / b.frame_cycles, "gather_share": b.gather_share,
-                "energy_ratio": b.energy_joules / a.energy_joules,
+                "energy_ratio": _ratio(b.energy_joules, a.energy_joules),
                 "dram_bytes": _dram_bytes(b), "dram_bytes_smallest_n": _dram_bytes(a)}
     rows = [{"constant": "(as configured)", "factor": 1.0, **measure(config)}]
-    fitted = config.pe.costs == "fitted"
-    for name in (n for n in ASSUMED if not (fitted and n in CYCLE_KEYS)):
+    for name in swept_constants(config):
         for f in factors:
-            rows.append({"constant": name, "factor": f, **measure(_scaled(config, name, f))})
+            scaled = _scaled(config, name, f)
+            if scaled is None:
+                rows.append({**dict.fromkeys(rows[0]), "constant": name, "factor": f,
+                             "skipped": f"x{f:g} leaves its allowed range"})
+            else:
+                rows.append({"constant": name, "factor": f, **measure(scaled)})
     return rows
 
 
@@ -97,7 +119,8 @@ def _add_speedups(rows, group: str):
 
 
 def _saturation(points) -> int:
-    """The first PE count from which doubling shortens the frame by less than 5%."""
+    """The first PE count from which the next of the sweep (twice as many PEs, or n, the
+    last) shortens the frame by less than 5%."""
     for a, b in zip(points, points[1:]):
         if b["frame_cycles"] > 0.95 * a["frame_cycles"]:
             return a["pe_count"]
@@ -198,7 +221,7 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
     contention = _contention_sweep(config, loads[n_max], pes)
     say("every gather network with one PE per map, every n ...")
     networks = _networks_per_n(config, loads)
-    say(f"sensitivity: {len(ASSUMED)} constants x0.5 and x2 ...")
+    say(f"sensitivity: {len(swept_constants(config))} constants x0.5 and x2 ...")
     sens = sensitivity(config, loads)
     result = {**({"code": code} if code else {}), "config": asdict(config),
         "workload": {k: meta[k] for k in (
@@ -303,7 +326,8 @@ def _write(out: Path, result: dict):
                       ("sensitivity.csv", "sensitivity"), ("contention.csv", "contention")):
         data = result[key]
         with open(out / name, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(data[0]))
+            # every key of every row (a skipped sensitivity row adds one)
+            writer = csv.DictWriter(f, fieldnames=list(dict.fromkeys(k for r in data for k in r)))
             writer.writeheader()
             writer.writerows(data)
 
@@ -413,7 +437,8 @@ def _format_sweep(result, n) -> list:
             for t in labels) + f" {_mb(by[labels[0], p]['dram_bytes']):9.1f}")
     parts = [f"{k}: P = {v}" if v < n else f"{k}: still paying at P = {v} = n"
              for k, v in result["saturation_pe_count"].items()]
-    lines.append(f"where doubling the PEs gains under 5% (n = {n}): {'; '.join(parts)}")
+    lines.append(f"where the next P (twice the PEs, or n) gains under 5% (n = {n}): "
+                 f"{'; '.join(parts)}")
     return lines
 
 
@@ -423,7 +448,7 @@ def _format_contention(result, n) -> str:
     for label, p in result["contention_saturation_pe_count"].items():
         best = max((c for c in contention if _channels_label(c["dram_channels"]) == label),
                    key=lambda c: c["speedup"])
-        where = f"doubling past P = {p} gains under 5%" if p < n else \
+        where = f"from P = {p} the next P gains under 5%" if p < n else \
             f"still paying at P = {p} = n"
         parts.append(f"{label}: {where} (best speedup {best['speedup']:.1f} at "
                      f"P = {best['pe_count']})")
@@ -484,19 +509,25 @@ def _format_calibration(cal) -> str:
 
 
 def _format_sensitivity(sens, n, first_n) -> str:
+    skipped = [f"{r['constant']} x{r['factor']:g}" for r in sens if r.get("skipped")]
+    sens = [r for r in sens if not r.get("skipped")]
     speeds = [r["speedup"] for r in sens]
     shares = [r["gather_share"] for r in sens]
-    energy = [r["energy_ratio"] for r in sens]
+    energy = [r["energy_ratio"] for r in sens if r["energy_ratio"] == r["energy_ratio"]]
     dram = [_mb(r["dram_bytes"]) for r in sens]
     worst = min(sens, key=lambda r: r["speedup"])
     if n == first_n:
         return (f"sensitivity: one n recorded (n = {n}), so no speedup to vary; record "
                 f"several (partpm speedup SCENE --maps 1,2,4,...)")
+    energy_text = (f"{min(energy):.2f}-{max(energy):.2f}x (as configured "
+                   f"{sens[0]['energy_ratio']:.2f}x)" if energy else
+                   "not defined (every energy constant is 0)")
     return (f"sensitivity (each assumed constant x0.5 and x2): speedup at n = {n} over "
             f"n = {first_n} {min(speeds):.2f}-{max(speeds):.2f} (as configured "
             f"{sens[0]['speedup']:.2f}; lowest with {worst['constant']} "
             f"x{worst['factor']:g}), gather share {min(shares) * 100:.2f}-"
             f"{max(shares) * 100:.2f}%, energy per frame at n = {n} over n = {first_n} "
-            f"{min(energy):.2f}-{max(energy):.2f}x (as configured "
-            f"{sens[0]['energy_ratio']:.2f}x), DRAM per frame at n = {n} "
-            f"{min(dram):.1f}-{max(dram):.1f} MB (as configured {dram[0]:.1f} MB)")
+            f"{energy_text}, DRAM per frame at n = {n} "
+            f"{min(dram):.1f}-{max(dram):.1f} MB (as configured {dram[0]:.1f} MB)"
+            + (f"; left out, beyond the allowed range: {', '.join(skipped)}" if skipped
+               else ""))

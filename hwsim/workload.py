@@ -122,15 +122,20 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
     if not isinstance(files, dict) or not files:
         raise ValueError(f"{meta_path}: files must map each n to its file, as "
                          f'{{"1": "n1.npz", ...}}, got {files!r}')
-    loads = {}
+    loads, spelt = {}, {}
     for n_text, name in files.items():
         n = _count("files: n", int(n_text) if str(n_text).isdigit() else n_text,
                    f"{meta_path}: ")
+        if n in spelt:
+            raise ValueError(f"{meta_path}: files lists n = {n} twice (as {spelt[n]!r} and "
+                             f"{n_text!r}): one file per n")
+        spelt[n] = n_text
         loads[n] = _load_map_workloads(d / name, n, meta)
     return meta, loads
 
 
 #: The arrays of one n's file, and their shape in terms of (n, Q); map_seconds is (n, R).
+#: All but map_seconds are counts: whole numbers.
 _ARRAYS = {"nodes_visited": "nq", "photons_tested": "nq", "photons_found": "nq",
            "map_photons": "n", "map_bytes": "n", "map_seconds": "nr"}
 
@@ -163,10 +168,17 @@ def _load_map_workloads(path: Path, n: int, meta: dict) -> MapWorkloads:
             if a.size and not (np.all(np.isfinite(a)) and a.min() >= 0):
                 raise ValueError(f"{path}: {k} must be finite and >= 0, got a minimum of "
                                  f"{a.min()}")
+            if k != "map_seconds" and a.size and not np.all(a == np.floor(a)):
+                raise ValueError(f"{path}: {k} counts, so its values must be whole numbers "
+                                 f"(WORKLOAD.md: uint32), got {a[a != np.floor(a)][0]!r}")
             arrays[k] = a
     if np.any(arrays["photons_found"] > arrays["photons_tested"]):
         raise ValueError(f"{path}: photons_found exceeds photons_tested for some query (a "
                          f"query finds only photons it tested)")
+    if q and not (arrays["nodes_visited"].any() or arrays["photons_tested"].any()):
+        raise ValueError(f"{path}: no query visits a node or tests a photon of any map "
+                         f"(nodes_visited and photons_tested are 0 throughout): there is no "
+                         f"work to simulate")
     return MapWorkloads(n=n, **arrays, bytes_per_node=int(meta["bytes_per_node"]),
                         bytes_per_photon=int(meta["bytes_per_photon"]))
 

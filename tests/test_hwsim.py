@@ -728,8 +728,12 @@ def test_invalid_pe_costs_name_the_key(tmp_path, toml, message):
 def test_a_bad_costs_file_names_the_key(tmp_path):
     from hwsim.calibrate import read_costs
     from hwsim.config import PEConfig
-    with pytest.raises(ValueError, match='pe.costs = "fitted" with no fitted cost: read x.toml'):
+    with pytest.raises(ValueError, match=r'pe.costs = "fitted" with no fitted cost: every '
+                       r'seconds_per_\* is 0 \(x.toml'):
         PEConfig(costs="fitted", fitted_costs="x.toml")
+    with pytest.raises(ValueError, match=r"pe.fitted_costs = 'nope.toml' is read only with "
+                       r'pe.costs = "fitted"'):
+        load_config(None, pe={"costs": "assumed", "fitted_costs": "nope.toml"})
     with pytest.raises(ValueError, match="pe.fitted_costs must be a file name"):
         load_config(None, pe={"costs": "fitted", "fitted_costs": 3})
     path, _ = _costs_file(tmp_path)
@@ -743,6 +747,13 @@ def test_a_bad_costs_file_names_the_key(tmp_path):
     path.write_text("scene = ")
     with pytest.raises(ValueError, match="is not TOML"):
         read_costs(path)
+    # A fit that found no cost at all: the message says so, not how to read the file.
+    import re
+    path.write_text(re.sub(r"(seconds_per_\w+) = .*", r"\1 = 0", text))
+    (tmp_path / "hw.toml").write_text('[pe]\ncosts = "fitted"\nfitted_costs = "fitted_costs.toml"\n')
+    with pytest.raises(ValueError, match=r"no fitted cost: every seconds_per_\* is 0 \(.*"
+                       r"fitted_costs.toml: a fit that found no time"):
+        load_config(tmp_path / "hw.toml")
 
 
 def _synthetic_dir(tmp_path):
@@ -835,6 +846,28 @@ def test_report_on_a_seeded_workload_matches_the_golden_report(tmp_path):
             assert c["frame_cycles"] >= cont[(0, p)]["frame_cycles"] * (1 - 1e-12)
     # The times are 2% noisy: the calibration explains most of them, not all.
     assert 0.9 < result["calibration"]["self"]["r2"] < 1
+
+
+def test_report_runs_at_the_edges_of_the_allowed_ranges(tmp_path):
+    """A constant at the top of its range (its x2 would leave it) and a timing-only config
+    (every energy constant 0) give a report: the sweep leaves that scaling out and says so,
+    and the energy ratio is not defined, instead of a traceback after the simulation."""
+    from hwsim.config import EnergyConfig, LARGEST
+    from hwsim.report import format_report, run_report
+    from dataclasses import fields
+    cfg = HardwareConfig().with_(memory={"sram_bytes": int(LARGEST)},
+                                 energy={f.name: 0.0 for f in fields(EnergyConfig)})
+    result = run_report(_synthetic_dir(tmp_path), cfg, tmp_path / "out")
+    skipped = [r for r in result["sensitivity"] if r.get("skipped")]
+    assert [(r["constant"], r["factor"]) for r in skipped] == [("memory.sram_bytes", 2.0)]
+    assert skipped[0]["speedup"] is None
+    assert any(r["constant"] == "memory.sram_bytes" and r["factor"] == 0.5
+               and r["speedup"] > 0 for r in result["sensitivity"])
+    text = format_report(result)
+    assert "left out, beyond the allowed range: memory.sram_bytes x2" in text
+    assert "not defined (every energy constant is 0)" in text
+    header = (tmp_path / "out" / "sensitivity.csv").read_text().splitlines()[0]
+    assert header.split(",")[-1] == "skipped"
 
 
 def test_hwsim_cli(tmp_path, capsys):
@@ -995,6 +1028,15 @@ def test_a_group_that_is_not_a_table_is_named(tmp_path, text):
     (lambda meta, z: meta.pop("files"), r"files must map each n to its file"),
     (lambda meta, z: meta.pop("bytes_per_node"), r"bytes_per_node is missing"),
     (lambda meta, z: meta.update(queries=0), r"queries must be an integer >= 1, got 0"),
+    (lambda meta, z: z.update(nodes_visited=z["nodes_visited"] + 0.5),
+     r"nodes_visited counts, so its values must be whole numbers"),
+    (lambda meta, z: z.update(nodes_visited=0 * z["nodes_visited"],
+                              photons_tested=0 * z["photons_tested"],
+                              photons_found=0 * z["photons_found"]),
+     r"no query visits a node or tests a photon of any map"),
+    (lambda meta, z: meta["files"].update({"0" + next(iter(meta["files"])):
+                                           next(iter(meta["files"].values()))}),
+     r"files lists n = 1 twice \(as '1' and '01'\)"),
 ])
 def test_a_broken_workload_names_the_file_and_the_fault(tmp_path, change, message):
     import json
