@@ -154,6 +154,10 @@ class PhotonMapper(mi.SamplingIntegrator):
         #: limit does (the command line's first Ctrl-C); the image has the passes so far.
         self.stop_requested = None
         self._cancelled = False
+        # (render seed, eye samples) of the last render(), for the sample() call that
+        # Mitsuba's aov makes right after it (see :meth:`sample`)
+        self._seed_for_sample = None
+        self._eye_samples = 0
         # The maps, radius and statistics of a render are the integrator's: a render (or a
         # wrapper's sample()) from a second thread waits for the one in progress to end.
         self._busy = threading.RLock()
@@ -394,8 +398,11 @@ class PhotonMapper(mi.SamplingIntegrator):
             # (not cleared when it ends: inside aov Mitsuba calls render() and then sample(),
             # and a cancel() during the one must end the other too)
             self._cancelled = False
+            self._seed_for_sample = None
             with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
-                return self._render(scene, sensor, seed, spp, develop, evaluate)
+                image = self._render(scene, sensor, seed, spp, develop, evaluate)
+            self._seed_for_sample = (_as_int(seed), self._eye_samples)
+            return image
 
     @contextmanager
     def _freeing_maps(self):
@@ -433,6 +440,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             self.radius = self.search_radius(scene)
             self._start_stats(seed)
             camera = CameraPass(scene, sensor, seed, spp, self.aov_names(), self.passes > 1)
+            self._eye_samples = camera.width
             self.backend.check_same(self._settings(scene, camera, seed))
             L, alpha = self._passes(scene, camera, seed)
             image = camera.develop(L, alpha, develop)
@@ -724,32 +732,42 @@ class PhotonMapper(mi.SamplingIntegrator):
     def sample(self, scene, sampler, ray, medium=None, active=True):
         """The radiance along ``ray`` for another integrator that wraps this one (moment,
         aov): maps are traced for this call with the ``seed`` prop's streams, and the passes
-        refine the estimate at these rays' visible points (progressive photon mapping)."""
+        refine the estimate at these rays' visible points (progressive photon mapping).
+
+        Mitsuba's ``aov`` renders its nested integrator alone (``render()``: the image
+        ``mi.render`` returns) and then once more through ``sample()`` (the film's channels):
+        the first call after a ``render()`` of as many eye samples takes that render's seed
+        too, so that the two use the same photons. A wrapper that does not call ``render()``
+        (``moment``) is not told ``mi.render``'s seed: its photons come from the ``seed`` prop
+        alone."""
         if self.backend.name != "local":
             raise ValueError(f"{type(self).__name__} with backend={self.backend.name!r} "
                              f"must be the scene's top-level integrator (its ranks gather "
                              f"whole images); use backend='local' inside moment or aov")
         _wait_for_background_tasks()
+        handed, self._seed_for_sample = self._seed_for_sample, None
+        render_seed = handed[0] if handed and handed[1] == dr.width(ray.o) else 0
         with self._busy, follow_mitsuba_level(), self._freeing_maps():
             try:
-                return self._sample(scene, sampler, ray, active)
+                return self._sample(scene, sampler, ray, active, render_seed)
             finally:
                 # A cancel() during the wrapper's render (before this call too: the wrapper
                 # loads and compiles first) ends this one; the next starts afresh.
                 self._cancelled = False
 
-    def _sample(self, scene, sampler, ray, active):
+    def _sample(self, scene, sampler, ray, active, render_seed: int):
         check_emitters(scene)
         note_bent_bsdfs(scene)
         width = dr.width(ray.o)
         self.radius = self.search_radius(scene)
-        self._start_stats(0)
+        self._start_stats(render_seed)
         eye = self.eye_pass(scene, sampler, ray, None, active, 1.0)
         self._layers = self.layers()
         terms = self.terms(self._layers, width, scene)
         start = time.perf_counter()
         for pass_index in range(self.passes):
-            self._photon_pass(scene, terms, eye.points, width, pass_index=pass_index)
+            self._photon_pass(scene, terms, eye.points, width, render_seed=render_seed,
+                              pass_index=pass_index)
             self._add_stats(passes=1)
             timed_out = 0 < self.time_limit <= time.perf_counter() - start
             if timed_out or self._cancelled or \

@@ -174,8 +174,9 @@ class PartPMIntegrator(PhotonMapper):
     only redirect them. Eye paths follow delta lobes to the surfaces with a non-delta lobe,
     where the estimate is taken. Every emitter plugin of Mitsuba 3.9.1 emits photons (area,
     point, spot, directional, directionalarea, projector, constant, envmap, sunsky). The plugin
-    works inside ``moment`` and ``aov`` (it then traces its maps with the ``seed`` prop alone
-    and refines the estimate at the wrapper's rays pass after pass), and honours
+    works inside ``moment`` and ``aov`` (its ``sample()`` traces its maps with the ``seed`` prop
+    and, inside ``aov``, the seed of the ``render()`` that ``aov`` calls first, and refines
+    the estimate at the wrapper's rays pass after pass), and honours
     ``render()``'s ``sensor``, ``seed``, ``spp``, ``develop`` and ``evaluate``. After a render,
     ``stats`` holds the photons stored, the map bytes and the time of every phase. Variants:
     the JIT RGB and mono variants (``llvm_ad_rgb``, ``cuda_ad_rgb``, ...); no volumes, no

@@ -488,6 +488,46 @@ def test_cli_writes_the_films_channels_of_an_aov_integrator(tmp_path):
     assert mi.Bitmap(str(out.with_suffix(".png"))).channel_count() == 3
 
 
+def test_inside_aov_the_film_and_the_returned_image_are_one_render_and_the_png_is_the_films(
+        tmp_path):
+    """Mitsuba's aov renders partpm alone (the image mi.render returns) and then through
+    sample() (the film): at a seed other than 0 the film's copy took its photons from the
+    seed prop alone and differed from the returned image by up to 0.11; now sample() takes
+    the seed of the render() just before it and the two are equal. The command line's PNG
+    is the film's colour (as the EXR), in the film's pixel format: a luminance film's PNG
+    was R, G, B made of Y, the depth AOV and the nested image's red."""
+    text = (Path(mi_partpm.__file__).parent / "scenes" / "cornell_box.xml").read_text()
+    wrapped = """<scene version="3.0.0">
+    <integrator type="aov">
+        <string name="aovs" value="dd:depth"/>
+        <integrator type="partpm"><integer name="photon_count" value="3000"/></integrator>
+    </integrator>"""
+    xml = tmp_path / "aov.xml"
+    xml.write_text(text.replace("<scene version=\"3.0.0\">", wrapped, 1))
+    scene = mi_partpm.load_scene(str(xml), resolution=(12, 12))
+    image = np.array(mi.render(scene, seed=5))
+    film = np.array(scene.sensors()[0].film().bitmap())
+    assert image.shape[2] == 4 and film.shape[2] > 4
+    assert image[..., :3].mean() > 0.05
+    # equal but for rounding (the two develop their samples in another order)
+    assert np.abs(image[..., :3] - film[..., :3]).max() < 1e-5 * image[..., :3].max()
+    lum = tmp_path / "lum.xml"
+    lum.write_text(xml.read_text().replace('<film type="hdrfilm">', '<film type="hdrfilm">'
+                   '<string name="pixel_format" value="luminance"/>', 1))
+    assert 'value="luminance"' in lum.read_text()
+    out = tmp_path / "o.exr"
+    assert main(["render", str(lum), "--resolution", "12x12", "--seed", "5", "-o", str(out),
+                 "-q"]) == 0
+    exr = mi.Bitmap(str(out))
+    assert [f.name for f in exr.struct_()][0] == "Y"
+    png = mi.Bitmap(str(out.with_suffix(".png")))
+    assert png.pixel_format() == mi.Bitmap.PixelFormat.Y
+    y = np.array(exr)[..., :1]
+    expected = np.array(mi.Bitmap(np.ascontiguousarray(y), mi.Bitmap.PixelFormat.Y).convert(
+        mi.Bitmap.PixelFormat.Y, mi.Struct.Type.UInt8, True)).astype(int)
+    assert np.abs(np.array(png).astype(int).reshape(expected.shape) - expected).max() <= 1
+
+
 def test_cancel_ends_a_progressive_render_inside_a_wrapper_and_its_passes_are_counted():
     """Inside aov, partpm's passes run in sample(): cancel() from another thread was ignored
     there (400 passes ran on) and stats["passes"] read 0. Now it stops after the pass in

@@ -411,7 +411,8 @@ def _checkpoints(every: int, out: Path, integrator, film):
         backend = getattr(integrator, "backend", None)
         if info["pass"] % every or (backend is not None and not backend.is_root):
             return
-        _write_image(out, info["image"](), film)
+        info["image"]()                 # develops the passes so far into the film
+        _write_image(out, film)
         log.info("checkpoint: pass %d written to %s", info["pass"], out)
     return on_pass
 
@@ -427,32 +428,32 @@ def _write(args, out: Path, image, film, stats: dict, seconds: dict, integrator)
              "options": {k: v for k, v in vars(args).items() if k != "command"}, **stats},
             indent=2,
             default=str) + "\n"))
-    _write_image(out, image, film)
+    _write_image(out, film)
 
 
-def _write_image(out: Path, image, film):
+def _write_image(out: Path, film):
     """The EXR with the film's channels (R, G, B, alpha where the film has it, then the
-    AOVs by name, as Mitsuba's own film writes them) and the PNG beside it (the colour and
-    alpha only), each written whole or not at all (see :func:`~.common.write_atomic`): a
+    AOVs by name, as Mitsuba's own film writes them) and the PNG beside it (the film's colour
+    and alpha only: its first ``base_channels_count()``, Y or R, G, B, with A where the
+    film's pixel format has it), both from the film, so they show one render (inside
+    Mitsuba's ``aov`` the image ``mi.render`` returns is another render of the nested
+    integrator), each written whole or not at all (see :func:`~.common.write_atomic`): a
     checkpoint may be read while the render goes on."""
     import mitsuba as mi
     import numpy as np
-    bitmap = film.bitmap()          # what ``image`` was developed from, with channel names
+    bitmap = film.bitmap()
     write_atomic(out, lambda name: bitmap.write(name))
-    # The colour (R, G, B or Y) and the alpha the film has, before any AOV.
-    colour = (1 if mi.is_monochromatic else 3) + \
-        int(mi.has_flag(film.flags(), mi.FilmFlags.Alpha))
-    pixels = np.array(image)
-    if pixels.ndim == 3 and pixels.shape[2] > colour:
-        pixels = pixels[..., :colour]
+    pixels = np.array(bitmap, dtype=np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    colour = film.base_channels_count() if hasattr(film, "base_channels_count") else \
+        (1 if mi.is_monochromatic else 3) + int(mi.has_flag(film.flags(), mi.FilmFlags.Alpha))
+    pixels = pixels[..., :colour]
     # Mitsuba's write_bitmap keeps only RGB in a PNG: the format is given here, with alpha.
     formats = {1: mi.Bitmap.PixelFormat.Y, 2: mi.Bitmap.PixelFormat.YA,
                3: mi.Bitmap.PixelFormat.RGB, 4: mi.Bitmap.PixelFormat.RGBA}
-    if pixels.ndim == 2:
-        pixels = pixels[..., None]
     fmt = formats[pixels.shape[2]]
-    png = mi.Bitmap(np.ascontiguousarray(pixels, dtype=np.float32), fmt).convert(
-        fmt, mi.Struct.Type.UInt8, True)
+    png = mi.Bitmap(np.ascontiguousarray(pixels), fmt).convert(fmt, mi.Struct.Type.UInt8, True)
     write_atomic(out.with_suffix(".png"),
                  lambda name: png.write(name, mi.Bitmap.FileFormat.PNG))
 
