@@ -332,7 +332,17 @@ def _call(kind, forest, q, **kw):
      r"maps must be \(first, stop\) with 0 <= first <= stop <= map_count = 1, got \(0.5"),
     (lambda pts: _call("knn", build_forest(pts), pts[:5], maps=(True, 1)),
      r"maps must be \(first, stop\)"),
-    (lambda pts: build_forest(pts, leaf_size=True), r"leaf_size must be an integer >= 1, got True"),
+    (lambda pts: build_forest(pts, leaf_size=True), r"leaf_size must be an integer in \[1, "
+                                                    r"4294967296\] .*, got True"),
+    # Beyond 64 bits it was an OverflowError from NumPy.
+    (lambda pts: build_forest(pts, leaf_size=2**70), r"leaf_size must be an integer in \[1, "),
+    # A Dr.Jit Bool was taken as radius 1 or 0; a 3-vector failed inside Dr.Jit.
+    (lambda pts: _call("radius", build_forest(pts), pts[:3], r=mi.Bool([True, False, True])),
+     r"r must be a number or one per query point \(a mi.Float\), got Bool"),
+    (lambda pts: _call("knn", build_forest(pts), pts[:3], max_radius=mi.Bool(True)),
+     r"max_radius must be a number or one per query point \(a mi.Float\), got Bool"),
+    (lambda pts: _call("radius", build_forest(pts), pts[:3], r=mi.Point3f(0.1, 0.2, 0.3)),
+     r"r must be a number or one per query point \(a mi.Float\), got Point3f"),
     (lambda pts: build_forest(pts + 1j), r"points must be real numbers of shape \(N, 3\)"),
     (lambda pts: build_forest(pts * 1e-18),
      r"photon positions span 9.\d+e-19 \(the longest side of their bounding box\), less "
@@ -1001,7 +1011,7 @@ def test_a_contribution_of_another_type_names_result_type(kind):
     assert isinstance(total, mi.Color3f)
 
 
-def test_radius_neighbours_answers_as_query_ball_point(monkeypatch):
+def test_radius_neighbours_answers_as_query_ball_point():
     """The NumPy front end of the radius query gives scipy's query_ball_point: the indices
     of every query's photons (sorted) and, with return_length, their counts; over unsorted
     queries (more than sort them), per-query radii, several maps and a range of maps."""
@@ -1033,9 +1043,75 @@ def test_radius_neighbours_answers_as_query_ball_point(monkeypatch):
             at_r, np.zeros((1, 3)), r_at, return_length=True).tolist() == [1]
     assert radius_neighbours(forest, np.zeros((0, 3)), 0.1) == []
     assert [len(a) for a in radius_neighbours(forest, q[:3], 0)] == [0, 0, 0]
-    # More photons than the index lists are gathered by (the largest k): said, not cut.
-    from mi_partpm.kdtree import knn as knn_module
-    monkeypatch.setattr(knn_module, "MAX_K", 4999)
-    with pytest.raises(ValueError, match=r"a query finds 5,000 photons within r, more than "
-                                         r"the 4999 .* return_length=True"):
-        radius_neighbours(forest, q[:2], 10.0)
+    # A query that finds every photon: the lists are written by a second walk, not
+    # gathered as the k nearest (which refused more than 16383 and took seconds for 1000).
+    every = radius_neighbours(forest, q[:2], 10.0)
+    assert all(np.array_equal(a, np.arange(5000)) for a in every)
+    # Many photons on few spots (ties everywhere), as scipy lists them.
+    spots = rng.integers(0, 3, (20000, 3)).astype(float)
+    near = rng.random((20, 3)) * 2
+    got = radius_neighbours(build_forest(spots), near, 0.9)
+    want = cKDTree(spots).query_ball_point(near, 0.9)
+    assert max(len(a) for a in got) > 2000
+    assert all(np.array_equal(a, np.sort(b)) for a, b in zip(got, want))
+
+
+def test_a_callback_that_cannot_be_called_as_the_query_calls_it_is_named():
+    """A contribution that is not a function, or takes other arguments than the walk
+    gives, was a Dr.Jit loop error ("encountered an exception (see above)") whose cause lay
+    two exceptions down; now it is a TypeError naming the callback and its arguments."""
+    from mi_partpm.kdtree.radius import CallbackError
+    forest = build_forest(np.random.default_rng(2).random((300, 3)))
+    q = np.full((1, 3), 0.5)
+    with pytest.raises(TypeError, match=r"contribution must be a function \(a callback\), "
+                                        r"got NoneType"):
+        radius_query(forest, q, 0.1, None)
+    with pytest.raises(TypeError, match=r"accept must be a function"):
+        radius_query(forest, q, 0.1, lambda i, d2, a, s: mi.Float(1), accept=3)
+    for call, args in ((lambda: radius_query(forest, q, 0.1, lambda i, d2: mi.Float(1)),
+                        r"contribution is called with 4 arguments \(index, dist2, active, "
+                        r"state\), and cannot take them"),
+                       (lambda: radius_query(forest, q, 0.1, lambda i, d2, a, s: mi.Float(1),
+                                             with_payload=True),
+                        r"contribution is called with 5 arguments \(index, dist2, active, "
+                        r"state, payload\)"),
+                       (lambda: knn_query(forest, q, 3, lambda i, d2, a, s, x: mi.Float(1)),
+                        r"contribution is called with 4 arguments"),
+                       (lambda: knn_query(forest, q, 3, lambda i, d2, a, s: mi.Float(1),
+                                          with_payload=True),
+                        r"contribution is called with 5 arguments"),
+                       (lambda: radius_query(forest, q, 0.1, lambda i, d2, a, s: mi.Float(1),
+                                             accept=lambda i: mi.Bool(True)),
+                        r"accept is called with 3 arguments \(index, active, state\)")):
+        with pytest.raises(CallbackError, match=args):
+            call()
+
+
+@pytest.mark.parametrize("queries", [100, 5000])
+def test_knn_leaves_the_radii_in_the_callers_state_at_any_query_count(queries):
+    """The contribution's state holds the final squared radii in ``radius2``, and so does
+    the object passed in afterwards: it did below 4096 queries (walked in the given order)
+    but kept its zeros above (sorted, a copy)."""
+    class State:
+        DRJIT_STRUCT = {"radius2": mi.Float}
+
+        def __init__(self, radius2=None):
+            self.radius2 = radius2
+    rng = np.random.default_rng(3)
+    forest = build_forest(rng.random((2000, 3)))
+    q = rng.random((queries, 3))
+    state = State(dr.zeros(mi.Float, queries))
+    res = knn_query(forest, q, 4, lambda i, d2, a, s: d2 / s.radius2, state=state)
+    kth = cKDTree(forest.points).query(q, [4])[0][:, 0] ** 2
+    np.testing.assert_allclose(res.radius2.numpy(), kth, rtol=1e-5)
+    np.testing.assert_array_equal(state.radius2.numpy(), res.radius2.numpy())
+    total = res.total.numpy()                        # sum of d2 / r2 over 4: in (0, 4]
+    assert np.all((total > 0) & (total <= 4 + 1e-5))
+
+
+def test_morton_codes_take_what_morton_order_takes():
+    from mi_partpm.kdtree import morton_codes
+    pts = np.random.default_rng(4).random((50, 3))
+    codes = morton_codes(pts).numpy()
+    assert np.array_equal(codes, morton_codes(mi.Point3f(*pts.T.astype(np.float32))).numpy())
+    assert np.array_equal(np.argsort(codes, kind="stable"), morton_order(pts))

@@ -61,6 +61,10 @@ __all__ = ["Forest", "build_forest", "as_points", "shared_leaf_size", "morton_co
 #: measures the current value against scipy.
 LEAF_SIZE = 64
 
+#: The largest ``leaf_size``: a forest's photon indices are 32-bit, so a larger leaf would
+#: hold no more photons.
+MAX_LEAF_SIZE = 1 << 32
+
 #: The most maps a forest holds (its per-map tables are host arrays of one entry per map; the
 #: paper's PE array has at most 1024).
 MAX_MAPS = 1 << 20
@@ -341,8 +345,10 @@ def _spread_bits(x):
     return (x | (x << 2)) & 0x09249249
 
 
-def morton_codes(p: mi.Point3f) -> mi.UInt32:
-    """30-bit Morton (Z-order) codes of ``p`` over its bounding box, on the device."""
+def morton_codes(p) -> mi.UInt32:
+    """30-bit Morton (Z-order) codes of ``p`` (a ``mi.Point3f`` or anything
+    :func:`as_points` takes) over its bounding box, on the device."""
+    p = as_points(p)
     code = dr.zeros(mi.UInt32, dr.width(p))
     for a, c in enumerate((p.x, p.y, p.z)):
         lo, hi = dr.min(c), dr.max(c)            # 1-wide arrays: no round trip to the host
@@ -685,8 +691,9 @@ def _check_input(p, ids, map_count, leaf_size, layout):
     if dr.width(ids) != n_points:
         raise ValueError(f"map_ids has {dr.width(ids)} entries for {n_points} points")
     if not isinstance(leaf_size, (int, np.integer)) or isinstance(leaf_size, bool) or \
-            leaf_size < 1:
-        raise ValueError(f"leaf_size must be an integer >= 1, got {leaf_size!r}")
+            not 1 <= leaf_size <= MAX_LEAF_SIZE:
+        raise ValueError(f"leaf_size must be an integer in [1, {MAX_LEAF_SIZE}] (2^32: a forest "
+                         f"holds fewer photons), got {leaf_size!r}")
     if n_points == 0:
         return
     check_coordinates(p, "photon positions")

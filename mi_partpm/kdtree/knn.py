@@ -22,8 +22,9 @@ from .forest import Forest, as_points
 from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, check_forest, check_order,
                      check_per_query, check_queries, coordinate, group_balls, group_lanes,
                      leaf_reached, leaf_run, order_queries, permute, photon_payload,
-                     photon_position, radius_query, result_type_errors, split_of, tree_row,
-                     typed_contribution, unpermute, walk_start)
+                     photon_position, radius_indices, radius_query, result_type_errors, split_of,
+                     tree_row, typed_contribution, check_callable, checked_callback, unpermute,
+                     walk_start)
 
 __all__ = ["knn_query", "KnnResult", "knn_neighbours", "radius_neighbours", "KNN_KEEP",
            "KNN_REACH", "KNN_SPREAD", "KNN_BINS"]
@@ -94,7 +95,9 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     contribution : callable(index, dist2, active, state) -> result_type, optional
         Summed over the neighbours found, as in :func:`~.radius.radius_query`, after the
         walk; when ``state`` has a ``radius2`` field it is set to each query's final squared
-        radius first (what a density kernel weighs by). With ``with_payload`` it takes a
+        radius first (what a density kernel weighs by), and the object passed in holds
+        them afterwards, in the caller's order (as the result's ``radius2``), at any count
+        and order of queries. With ``with_payload`` it takes a
         fifth argument, the photon's 32-bit payload (``mi.UInt32``), as for
         :func:`~.radius.radius_query` (read per neighbour: the neighbours are chosen
         before any contribution is evaluated).
@@ -192,8 +195,11 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
             return (res, [dr.full(mi.Float, dr.inf, width)] * k,
                     [dr.full(mi.UInt32, 0xFFFFFFFF, width)] * k)
         return res
+    if contribution is not None:
+        check_callable(contribution, "contribution")
+    accept = checked_callback(accept, "accept")
     if with_payload and contribution is not None:
-        own = contribution
+        own = checked_callback(contribution, "contribution")
 
         def contribution(i, d2, a, s):
             return own(i, d2, a, s, photon_payload(forest, i, a))
@@ -213,6 +219,10 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
                     QueryStats(*[unpermute(v, perm, width) for v in (
                         res.stats.nodes_visited, res.stats.photons_tested,
                         res.stats.photons_found)]) if with_stats else None)
+    if perm is not None and hasattr(state, "radius2") and \
+            not type(state).__module__.startswith("mitsuba"):
+        # The walk set the radii on the sorted copy of the state: the caller's gets them too.
+        state.radius2 = mi.Float(res.radius2)
     if neighbours:
         return res, [unpermute(v, perm, width) for v in d2], \
             [unpermute(v, perm, width) for v in idx]
@@ -587,10 +597,9 @@ def radius_neighbours(forest: Forest, points, r, return_length: bool = False, ma
     int64 array), which are the lists' lengths. ``maps``: only maps
     ``first .. stop-1``, as for :func:`~.radius.radius_query`.
 
-    The counts are one :func:`~.radius.radius_query`; the indices are then the k nearest
-    within r (:func:`knn_query`), k the largest count, so a query that finds more than
-    :data:`MAX_K` photons is refused (ask for the counts, or a smaller radius) and the cost
-    grows with the largest count, as :func:`knn_neighbours`' does with k. Unlike scipy:
+    The counts are one :func:`~.radius.radius_query`; a second walk writes each query's
+    photons into its run of one array (:func:`~.radius.radius_indices`), so the cost is
+    that of two sums plus the photons found, however many one query finds. Unlike scipy:
     positions are float32 (a photon within float32 rounding of the sphere may be in or out);
     one (3,) point is taken as a (1, 3) array and answered with a list of one.
     """
@@ -602,12 +611,9 @@ def radius_neighbours(forest: Forest, points, r, return_length: bool = False, ma
     lengths = counts.numpy().astype(np.int64) if width else np.zeros(0, np.int64)
     if return_length:
         return lengths
-    k = int(lengths.max(initial=0))
-    if k == 0:
+    if not lengths.any():
         return [np.zeros(0, np.int64) for _ in range(width)]
-    if k > MAX_K:
-        raise ValueError(f"a query finds {k:,} photons within r, more than the {MAX_K} that "
-                         f"the index lists are gathered by: give return_length=True for the "
-                         f"counts, or a smaller r")
-    dist, idx = _sorted_neighbours(forest, p, k, r, maps)
-    return [np.sort(row[np.isfinite(d)]) for row, d in zip(idx, dist)]
+    found = forest.order[radius_indices(forest, p, r, lengths, maps)]
+    query = np.repeat(np.arange(width), lengths)
+    found = found[np.lexsort((found, query))]          # each query's run, sorted
+    return np.split(found, np.cumsum(lengths)[:-1])

@@ -155,6 +155,9 @@ def check_per_query(value, name: str, width: int, radius: bool = True, active=Tr
     elif not radius and not isinstance(value, mi.Bool):
         raise ValueError(f"{name} must be true or false, or a mi.Bool per query point, got "
                          f"{type(value).__name__}")
+    elif radius and (dr.depth_v(value) != 1 or dr.type_v(value) == dr.VarType.Bool):
+        raise ValueError(f"{name} must be a number or one per query point (a mi.Float), got "
+                         f"{type(value).__name__}")
     n = dr.width(value)
     if n not in (1, width):
         raise ValueError(f"{name} has {n} entries for {width} query points (give one, or "
@@ -167,8 +170,49 @@ def check_per_query(value, name: str, width: int, radius: bool = True, active=Tr
     return value
 
 
-class ResultTypeError(TypeError):
+class CallbackError(TypeError):
+    """A query's callback cannot be called as the query calls it (its arguments), or what it
+    returned cannot be used."""
+
+
+class ResultTypeError(CallbackError):
     """A query's ``contribution`` returned a value that its ``result_type`` cannot hold."""
+
+
+def _arguments_fit(f, args, name: str):
+    """A :class:`CallbackError` naming ``name`` unless ``f`` takes ``args`` (checked on the
+    first call only: the walk calls it with the same arguments every time)."""
+    import inspect
+    try:
+        signature = inspect.signature(f)
+    except (TypeError, ValueError):          # a builtin without a signature: just call it
+        return
+    try:
+        signature.bind(*args)
+    except TypeError as e:
+        raise CallbackError(f"{name} is called with {len(args)} arguments ({CALLBACK_ARGS[name]}"
+                            f"{', payload' if len(args) == 5 else ''}), and cannot take "
+                            f"them: {e}") from None
+
+
+#: What the callbacks are given, by name.
+CALLBACK_ARGS = {"contribution": "index, dist2, active, state", "accept": "index, active, state"}
+
+
+def checked_callback(f, name: str):
+    """``f`` (None stays None), refused at once unless callable, and on its first call
+    unless it takes the arguments the walk gives it (:class:`CallbackError`)."""
+    if f is None:
+        return None
+    check_callable(f, name)
+    checked = []
+
+    def call(*args):
+        if not checked:
+            _arguments_fit(f, args, name)
+            checked.append(True)
+        return f(*args)
+    return call
 
 
 def typed_contribution(contribution, result_type):
@@ -176,6 +220,8 @@ def typed_contribution(contribution, result_type):
     vector, e.g. a colour, does not add to a scalar total): a :class:`ResultTypeError` naming
     ``result_type`` otherwise, which :func:`result_type_errors` passes on out of the walk's
     loop (inside, Dr.Jit reported only that the loop's state changed type)."""
+    contribution = checked_callback(contribution, "contribution")
+
     def call(*args):
         value = contribution(*args)
         if dr.is_array_v(value) and type(value) is not result_type and \
@@ -190,18 +236,19 @@ def typed_contribution(contribution, result_type):
 
 @contextmanager
 def result_type_errors():
-    """Raise the :class:`ResultTypeError` that a walk's loop met as itself, not wrapped in
-    Dr.Jit's error of the loop."""
+    """Raise the :class:`CallbackError` (a :class:`ResultTypeError`, or a callback that
+    cannot take its arguments) that a walk's loop met as itself, not wrapped in Dr.Jit's
+    error of the loop."""
     try:
         yield
     except RuntimeError as e:
         cause, seen = e, set()
         while cause is not None and id(cause) not in seen and \
-                not isinstance(cause, ResultTypeError):
+                not isinstance(cause, CallbackError):
             seen.add(id(cause))
             cause = cause.__cause__ or cause.__context__
-        if isinstance(cause, ResultTypeError):
-            raise ResultTypeError(str(cause)) from None
+        if isinstance(cause, CallbackError):
+            raise type(cause)(str(cause)) from None
         raise
 
 
@@ -391,8 +438,35 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     -------
     total, or (total, QueryStats), per query in the caller's order.
     """
-    check_forest(forest)
     result_type = mi.Float if result_type is None else result_type
+    check_callable(contribution, "contribution")
+    accept = checked_callback(accept, "accept")
+    walked = _walk_setup(forest, p, r, active, maps, order, walk)
+    if walked is None:
+        # No photon anywhere: nothing to walk (and no array to gather from).
+        width = dr.width(as_points(p, "p"))
+        zeros = dr.zeros(mi.UInt32, width)
+        total = dr.zeros(result_type, width)
+        return (total, QueryStats(zeros, mi.UInt32(zeros), mi.UInt32(zeros))) \
+            if with_stats else total
+    p, r, active, perm, ball, table, width = walked
+    contribution = typed_contribution(contribution, result_type)
+    with result_type_errors():
+        total, stats = _walk(forest, p, r * r, ball, contribution, result_type, active,
+                             table, with_stats, accept,
+                             permute(state, perm, width), with_payload=with_payload)
+    total = unpermute(total, perm, width)
+    if not with_stats:
+        return total
+    return total, QueryStats(*[unpermute(v, perm, width) for v in (
+        stats.nodes_visited, stats.photons_tested, stats.photons_found)])
+
+
+def _walk_setup(forest, p, r, active, maps, order, walk):
+    """Every argument of a radius walk checked, and the queries put in walking order:
+    ``(p, r, active, perm, ball, table, width)``, or None where there is nothing to walk
+    (no photon, or no query)."""
+    check_forest(forest)
     if walk not in WALKS:
         raise ValueError(f"walk must be one of {', '.join(repr(w) for w in WALKS)}, got "
                          f"{walk!r}")
@@ -404,26 +478,41 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
     check_order(order)
     table = forest.walk_table(maps)    # refuses a bad range, an empty forest's too
     if forest.size == 0 or width == 0:
-        # No photon anywhere: nothing to walk (and no array to gather from).
-        zeros = dr.zeros(mi.UInt32, width)
-        total = dr.zeros(result_type, width)
-        return (total, QueryStats(zeros, mi.UInt32(zeros), mi.UInt32(zeros))) \
-            if with_stats else total
+        return None
     perm = order_queries(p, width, order)
     active = dr.full(mi.Bool, True, width) & mi.Bool(active)
     r = radius_array(r)
     p, r, active = permute(p, perm, width), permute(r, perm, width), permute(active, perm, width)
     ball = group_balls(p, r, active, width) if walk == "group" else (p, r)
-    contribution = typed_contribution(contribution, result_type)
-    with result_type_errors():
-        total, stats = _walk(forest, p, r * r, ball, contribution, result_type, active,
-                             table, with_stats, accept,
-                             permute(state, perm, width), with_payload=with_payload)
-    total = unpermute(total, perm, width)
-    if not with_stats:
-        return total
-    return total, QueryStats(*[unpermute(v, perm, width) for v in (
-        stats.nodes_visited, stats.photons_tested, stats.photons_found)])
+    return p, r, active, perm, ball, table, width
+
+
+def radius_indices(forest: Forest, p, r, lengths, maps=None) -> np.ndarray:
+    """The tree-order indices of the photons within ``r`` of each query, as one flat host
+    array, query after query in the caller's order, each query's in the order its walk met
+    them; ``lengths`` are the queries' counts (one :func:`radius_query` of ones, over the
+    same ``maps``). One more walk writes every photon found at its query's next slot."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    total = int(lengths.sum())
+    walked = _walk_setup(forest, p, r, True, maps, "morton", "group")
+    if walked is None or total == 0:
+        return np.zeros(0, np.int64)
+    p, r, active, perm, ball, table, width = walked
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    out = dr.zeros(mi.UInt32, total)
+    dr.make_opaque(out)
+    sink = (out, permute(mi.UInt32(starts.astype(np.uint32)), perm, width),
+            permute(mi.UInt32(lengths.astype(np.uint32)), perm, width))
+    _walk(forest, p, r * r, ball, None, mi.UInt32, active, table, False, None, None,
+          sink=sink)
+    dr.eval(out)
+    return out.numpy().astype(np.int64)
+
+
+def check_callable(f, name: str):
+    """A TypeError naming ``name`` unless ``f`` can be called (a callback)."""
+    if not callable(f):
+        raise TypeError(f"{name} must be a function (a callback), got {type(f).__name__}")
 
 
 def tree_row(table, k, bounds, active=True):
@@ -486,14 +575,16 @@ def split_of(forest: Forest, node, active=True):
 
 @dr.syntax
 def _walk(forest, p, r2, ball, contribution, result_type, active, walk, with_stats, accept,
-          state, collect=None, with_payload=False):
+          state, collect=None, with_payload=False, sink=None):
     """The while-while walk behind :func:`radius_query`, one lane per query point, over the
     trees of ``walk`` (:meth:`~.forest.Forest.walk_table`): nodes and leaves are chosen by
     the lane's walking ``ball`` (centre, radius: :func:`group_balls`), photons by its own
     squared radius ``r2``. ``collect``: two local arrays (squared distances, indices) that
     keep the photons found, as many as they hold; ``photons_found`` then counts them, and a
     lane that finds more than they hold stops after that leaf (its count is then only a
-    lower bound). ``with_payload``: ``contribution`` takes the photon's payload too."""
+    lower bound). ``with_payload``: ``contribution`` takes the photon's payload too.
+    ``sink``: (out, first, count), a UInt32 array and each lane's first slot of it and its
+    count of slots: the photons found are written there in turn (:func:`radius_indices`)."""
     width = dr.width(p)
     c, cr = ball
     cr2 = cr * cr
@@ -565,7 +656,11 @@ def _walk(forest, p, r2, ball, contribution, result_type, active, walk, with_sta
                         keep = photons_found < len(collect[0])
                         collect[0].write(dist2, photons_found, keep)
                         collect[1].write(j, photons_found, keep)
-                    if dr.hint(with_stats or collect is not None, mode="scalar"):
+                    if dr.hint(sink is not None, mode="scalar"):
+                        dr.scatter(sink[0], j, sink[1] + photons_found,
+                                   found & (photons_found < sink[2]))
+                    if dr.hint(with_stats or collect is not None or sink is not None,
+                               mode="scalar"):
                         photons_found += 1
                     if dr.hint(contribution is not None and with_payload, mode="scalar"):
                         total += contribution(j, dist2, found, state, payload)
