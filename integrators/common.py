@@ -645,10 +645,10 @@ class PhotonMapper(mi.SamplingIntegrator):
             if float(dr.sum(arrays[2 * j + 1])[0]) == 0:
                 r = self.radius if not prefix else self.stats.get(f"{prefix}radius")
                 radius = "" if r is None else f" (radius {r:.4g})"
-                log.warning("no photon was found at any visible point by the %s estimate%s%s, "
-                            "though %d were stored: the search is far smaller than the "
-                            "photons' spacing, and those maps %s", term.name, radius, first,
-                            stored, add)
+                where, why = self.none_found_text(term.name)
+                log.warning("no photon was found at any %s by the %s estimate%s%s, though %d "
+                            "were stored: %s, and those maps %s", where, term.name, radius,
+                            first, stored, why, add)
 
     def _finish(self, terms):
         self.after_estimate()
@@ -659,6 +659,10 @@ class PhotonMapper(mi.SamplingIntegrator):
                 key = "mean_final_radius" if term.name == "global" else \
                     f"{term.name}_mean_final_radius"
                 self.stats[key] = float(dr.mean(dr.sqrt(term.state.r2))[0])
+        done = self.stats.get("passes", 0)
+        if "mean_final_radius" not in self.stats and done > 1 and \
+                self.scheduled_radius(done) is not None:
+            self.stats["mean_final_radius"] = self.scheduled_radius(done)
 
     def _after_pass(self, pass_index: int, terms, start: float, image) -> bool:
         """Progress after a pass (``on_pass`` receives it, with ``image()`` to develop the
@@ -672,11 +676,15 @@ class PhotonMapper(mi.SamplingIntegrator):
                 "photons": done * self.params.photon_count,
                 "eta": self._remaining(elapsed, done),
                 "mean_radius": float(dr.mean(dr.sqrt(state.r2))[0])
-                if hasattr(state, "r2") else None}
+                if hasattr(state, "r2") else self.scheduled_radius(done)}
         timed_out = self.time_limit > 0 and elapsed >= self.time_limit
         asked = self._cancelled or \
             (self.stop_requested is not None and bool(self.stop_requested()))
-        stop = (timed_out or asked) and done < self.passes
+        ended = self.cannot_run_pass(done) if done < self.passes else None
+        if ended and not (timed_out or asked):
+            log.warning("pass %d: %s, so the render ends here, before its time limit", done,
+                        ended)
+        stop = (timed_out or asked or ended is not None) and done < self.passes
         if self.passes > 1:
             # Every process of the render stops after the same pass (the first whose clock
             # or request says so on any process), or one would wait in the next pass's
@@ -687,7 +695,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         if info["last"]:
             info["eta"] = 0.0
         if stop:
-            self._stopped_by(timed_out, asked)
+            self._stopped_by(timed_out, asked, ended is not None)
         if self.passes > 1:
             radius = "" if info["mean_radius"] is None else \
                 f", mean radius {info['mean_radius']:.4g}"
@@ -695,6 +703,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                 f"at most {self.passes} in {self.time_limit:g} s" \
                 if self.passes < UNTIL_TIME_LIMIT else f"as many as fit in {self.time_limit:g} s"
             ending = (", stopped as asked" if asked else ", time limit reached" if timed_out
+                      else ", no further pass can run" if ended
                       else ", stopped with another process") if stop \
                 else f", about {info['eta']:.0f} s left"
             log.info("pass %d of %s: %d photons so far%s, %.1f s elapsed%s", done, of,
@@ -713,11 +722,27 @@ class PhotonMapper(mi.SamplingIntegrator):
                 log.info("pass %d: stopped as asked", done)
         return stop
 
-    def _stopped_by(self, timed_out: bool, asked: bool):
+    def _stopped_by(self, timed_out: bool, asked: bool, ended: bool = False):
         """Why the render has fewer passes than it was given, in its stats: its time limit,
-        a request (Ctrl-C, cancel()), or another process of the render that stopped."""
+        a request (Ctrl-C, cancel()), a next pass that cannot run (:meth:`cannot_run_pass`)
+        or another process of the render that stopped."""
         self.stats["stopped_by"] = "time_limit" if timed_out else \
-            "request" if asked else "another_process"
+            "request" if asked else "radius" if ended else "another_process"
+
+    def none_found_text(self, term: str) -> tuple:
+        """Where the ``term`` estimate searches, and why it may find nothing there."""
+        return "visible point", "the search is far smaller than the photons' spacing"
+
+    def scheduled_radius(self, passes_done: int):
+        """The radius a next pass would search with where it follows a schedule rather than
+        each eye path's photons (a final gather's), or None."""
+        return None
+
+    def cannot_run_pass(self, pass_index: int):
+        """Why pass ``pass_index`` (0 first) cannot run, or None. A render of a given number
+        of passes is refused before its first where one could not; one of passes until its
+        time limit ends after the last that can. None here."""
+        return None
 
     def _remaining(self, elapsed: float, done: int) -> float:
         """Seconds left: the passes to go at the mean pass time so far, or less where the
@@ -770,10 +795,15 @@ class PhotonMapper(mi.SamplingIntegrator):
                               pass_index=pass_index)
             self._add_stats(passes=1)
             timed_out = 0 < self.time_limit <= time.perf_counter() - start
-            if timed_out or self._cancelled or \
+            ended = self.cannot_run_pass(pass_index + 1) if pass_index + 1 < self.passes \
+                else None
+            if timed_out or ended or self._cancelled or \
                     (self.stop_requested is not None and self.stop_requested()):
                 if pass_index + 1 < self.passes:
-                    self._stopped_by(timed_out, True)
+                    if ended and not timed_out:
+                        log.warning("pass %d: %s, so the render ends here, before its time "
+                                    "limit", pass_index + 1, ended)
+                    self._stopped_by(timed_out, not (timed_out or ended), bool(ended))
                 break
         self._finish(terms)
         return eye.emitted + _radiance(terms), eye.valid, []

@@ -85,7 +85,9 @@ class PartPMIntegrator(PhotonMapper):
        * - alpha
          - |float|
          - Fraction of a pass's new photons kept by the radius reduction, in (0, 1):
-           r^2 shrinks by (N + alpha M) / (N + M). (Default: 0.7)
+           r^2 shrinks by (N + alpha M) / (N + M); a final gather's radius follows the
+           schedule of a constant M. Only for a progressive render (refused with
+           passes = 1). (Default: 0.7)
        * - time_limit
          - |float|
          - Seconds, >= 0: stop after the pass during which this much time has passed and
@@ -204,6 +206,11 @@ class PartPMIntegrator(PhotonMapper):
             if (props is not None and "passes" in props) or not self.time_limit \
             else UNTIL_TIME_LIMIT
         self.alpha = read_float(props, "alpha", 0.7, low=0.0, high=1.0, high_open=True)
+        if props is not None and "alpha" in props and self.passes == 1:
+            raise ValueError(f"alpha = {self.alpha:g} sets how fast a progressive render's "
+                             f"radius shrinks between passes: it needs passes > 1, or a "
+                             f"time_limit without passes (passes until it); with passes = 1 "
+                             f"it would change nothing")
         self.caustic_photon_count = read_int(props, "caustic_photon_count", 0, low=0)
         self.caustic_radius, self.caustic_radius_fraction = _read_radius_pair(
             props, "caustic_radius", "caustic_radius_fraction")
@@ -311,6 +318,30 @@ class PartPMIntegrator(PhotonMapper):
             self.stats["caustic_radius"] = r
             terms.append(self._points_term("caustic", by_name["caustic"], width, r))
         return terms
+
+    def none_found_text(self, term: str) -> tuple:
+        if term == "global" and self.final_gather:
+            return ("final gather ray's hit", "the gather rays met no surface that stores "
+                    "photons within max_depth (they left the scene, or went through glass "
+                    "only), or the search is far smaller than the photons' spacing")
+        return super().none_found_text(term)
+
+    def scheduled_radius(self, passes_done: int):
+        """A progressive final gather's radius in the pass after ``passes_done``."""
+        if self.final_gather and self.passes > 1 and passes_done:
+            return radius_schedule(self.radius, self.alpha, passes_done)
+        return None
+
+    def cannot_run_pass(self, pass_index: int):
+        """A final gather's radius follows a schedule: with passes until a time limit, a
+        small ``alpha`` can take it below the least radius before the limit (a given number
+        of passes is checked before the first, in :meth:`terms`)."""
+        if self.final_gather and pass_index and \
+                radius_schedule(self.radius, self.alpha, pass_index) < MIN_RADIUS:
+            return (f"alpha = {self.alpha:g} would shrink the final gather's radius "
+                    f"{self.radius:g} to {radius_schedule(self.radius, self.alpha, pass_index):.3g}"
+                    f" in pass {pass_index + 1}, {below_min_radius()}")
+        return None
 
     def _points_term(self, name: str, layer, width: int, radius) -> Term:
         state = SPPMState.start(width, radius, self.alpha)

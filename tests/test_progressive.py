@@ -214,6 +214,10 @@ def test_on_pass_info_says_what_it_knows_and_its_image_only_while_current():
     ({"alpha": 1.0}, r"alpha must be a finite number in \(0.0, 1.0\), got 1.0"),
     ({"alpha": 0.0}, r"alpha must be .* got 0.0"),
     ({"time_limit": -1.0}, r"time_limit must be a finite number in \[0.0, inf\), got -1.0"),
+    # It was ignored in silence with one pass (the command line refused --alpha).
+    ({"alpha": 0.3}, r"alpha = 0.3 sets how fast a progressive render's radius shrinks "
+                     r"between passes: it needs passes > 1"),
+    ({"alpha": 0.3, "passes": 1, "time_limit": 5.0}, r"alpha = 0.3 .* it needs passes > 1"),
 ])
 def test_bad_progressive_props(props, message):
     with pytest.raises(Exception, match=message):
@@ -689,3 +693,53 @@ def test_list_takes_no_scene(capsys):
     """render --list FILE listed the built-in scenes and ignored FILE without a word."""
     assert main(["render", "--list", "my_scene.xml"]) == 2
     assert "--list lists the built-in scenes and takes no SCENE" in capsys.readouterr().err
+
+
+def test_a_final_gather_until_a_time_limit_ends_where_its_radius_schedule_does(caplog):
+    """Passes until a time limit with a final gather and a small alpha: the render failed
+    with an error in the pass whose scheduled radius fell below 1e-15, after all its work,
+    and returned nothing. Now it ends after the last pass that can run, says why, and
+    returns that image; on_pass and the stats give the gather's scheduled radius (they gave
+    None and nothing)."""
+    from mi_partpm.kdtree.radius import MIN_RADIUS
+    from mi_partpm.progressive import radius_schedule
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 500, "alpha": 0.001,
+                               "time_limit": 120.0, "direct": "nee", "final_gather": 1})
+    infos = []
+    integrator.on_pass = infos.append
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        image = render(scene, integrator)
+    r0 = integrator.radius
+    last = next(i for i in range(1, 1000) if radius_schedule(r0, 0.001, i) < MIN_RADIUS)
+    assert integrator.stats["passes"] == last
+    assert integrator.stats["stopped_by"] == "radius"
+    assert f"pass {last}: alpha = 0.001 would shrink the final gather's radius" in caplog.text
+    assert np.isfinite(image).all() and image.mean() > 0
+    assert [i["mean_radius"] for i in infos] == \
+        pytest.approx([radius_schedule(r0, 0.001, i) for i in range(1, last + 1)])
+    assert integrator.stats["mean_final_radius"] == pytest.approx(
+        radius_schedule(r0, 0.001, last))
+
+
+def test_a_final_gather_that_finds_nothing_says_where_it_searched(caplog):
+    """A floor under a point light, seen from above: the gather rays leave the scene, so
+    the global maps are never read. The warning said no photon was found at any visible
+    point and blamed the radius; the global maps are read at the gather rays' hits."""
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": T().look_at(origin=[0, 3, 0.01], target=[0, 0, 0],
+                                           up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90),
+                  "bsdf": {"type": "diffuse"}},
+        "light": {"type": "point", "position": [0, 1, 0], "intensity": 1.0}})
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        render(scene, mi.load_dict({"type": "partpm", "photon_count": 1000,
+                                    "direct": "nee", "final_gather": 2}))
+    assert "no photon was found at any final gather ray's hit by the global estimate" in \
+        caplog.text
+    assert "the gather rays met no surface that stores photons within max_depth" in \
+        caplog.text
