@@ -731,7 +731,9 @@ class PhotonMapper(mi.SamplingIntegrator):
 
     def none_found_text(self, term: str) -> tuple:
         """Where the ``term`` estimate searches, and why it may find nothing there."""
-        return "visible point", "the search is far smaller than the photons' spacing"
+        return "visible point", ("the search is far smaller than the photons' spacing, or "
+                                 "the photons lie only where the camera sees no surface read "
+                                 "from the maps (on an emitter hide_emitters hides, say)")
 
     def scheduled_radius(self, passes_done: int):
         """The radius a next pass would search with where it follows a schedule rather than

@@ -106,11 +106,13 @@ class PMIntegrator(PhotonMapper):
             log.warning("only %d photons were stored, no more than k = %d: every estimate "
                         "gathers the whole map, a blur of the whole scene (lower k or raise "
                         "photon_count)", stored, self.k)
-        # Sum of r, number of estimates, number that found fewer than k (filled by estimate()).
-        self._acc = dr.zeros(mi.Float, 3)
+        # Sum of r, number of estimates, number that found fewer than k (filled by
+        # estimate_points(); host sums: float32 atomics put a mean of capped radii above
+        # the cap, and stop counting at 2^24 estimates).
+        self._acc = [0.0, 0, 0]
 
     def after_estimate(self):
-        acc = self._acc.numpy()
+        acc = self._acc
         count = max(float(acc[1]), 1.0)
         self.stats.update(k=self.k, max_radius=self.max_radius,
                           mean_knn_radius=float(acc[0]) / count,
@@ -135,9 +137,10 @@ class PMIntegrator(PhotonMapper):
                        lobes=estimated_lobes(self.params.glossy), count_kth=self.count_kth)
         # An empty map finds nothing at radius 0 (no cap): not an estimate of any radius.
         counted = dr.isfinite(est.radius2) & ((est.found > 0) | (est.radius2 > 0))
-        dr.scatter_reduce(dr.ReduceOp.Add, self._acc, dr.sqrt(est.radius2), 0, counted)
-        dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 1, counted)
-        dr.scatter_reduce(dr.ReduceOp.Add, self._acc, 1.0, 2, counted & (est.found < self.k))
+        r = dr.select(counted, dr.sqrt(est.radius2), 0.0)
+        self._acc[0] += float(dr.sum(mi.Float64(r))[0])
+        self._acc[1] += int(dr.count(counted)[0])
+        self._acc[2] += int(dr.count(counted & (est.found < self.k))[0])
         return est.radiance(), est.found
 
     def to_string(self):

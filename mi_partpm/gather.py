@@ -28,9 +28,14 @@ from .estimate import gather_flux
 from .eyepath import lands_on, lobe_context, passes_through
 from .props import UNLIMITED_DEPTH, segment_limit
 
-__all__ = ["final_gather"]
+__all__ = ["final_gather", "BATCH_LANES"]
 
 log = logging.getLogger("mi_partpm")
+
+#: Gather rays traced together at most when the visible points are fewer: several rays per
+#: point run side by side (a preview of 16 x 16 pixels took 13 ms per ray, the kernels'
+#: launches, whatever its size). With this many points or more, one ray per point at a time.
+BATCH_LANES = 1 << 18
 
 
 def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius: float,
@@ -56,11 +61,28 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
     # The ray index and the sample count enter the kernels as opaque values, so every ray
     # runs the same kernels (compiled once) instead of kernels of its own.
     n_samples = dr.opaque(mi.UInt64, samples)
-    start, said = time.perf_counter(), 0
-    for j in range(samples):
-        rng = mi.PCG32(count, dr.opaque(mi.UInt64, seed & 0xFFFFFFFFFFFFFFFF),
-                       dr.arange(mi.UInt64, count) * n_samples + dr.opaque(mi.UInt64, j))
-        si, bsdf = points.si, points.bsdf
+    bounded = max_depth != UNLIMITED_DEPTH
+    batch = max(1, min(samples, BATCH_LANES // count))
+    start, said, j = time.perf_counter(), 0, 0
+    while j < samples:
+        rays = min(batch, samples - j)
+        # Lane l: ray j + l // count of point l % count (its stream, as one ray at a time).
+        lane = dr.arange(mi.UInt32, count * rays)
+        point = lane % dr.opaque(mi.UInt32, count) if rays > 1 else lane
+        ray_index = mi.UInt64(lane // dr.opaque(mi.UInt32, count)) + dr.opaque(mi.UInt64, j) \
+            if rays > 1 else dr.opaque(mi.UInt64, j)
+        # The stream of (point, ray): PCG32's constructor adds the lane to both seeds, so
+        # they are given here with the point's index added instead (one ray at a time, the
+        # lane is the point), whatever the batch.
+        rng = mi.PCG32(count * rays)
+        rng.seed(dr.opaque(mi.UInt64, seed & 0xFFFFFFFFFFFFFFFF) + mi.UInt64(point),
+                 mi.UInt64(point) * (n_samples + 1) + ray_index)
+        if rays > 1:
+            si = dr.gather(type(points.si), points.si, point)
+            bsdf = dr.gather(mi.BSDFPtr, points.bsdf, point)
+            max_bounce = dr.gather(mi.UInt32, points.max_bounce, point)
+        else:
+            si, bsdf, max_bounce = points.si, points.bsdf, points.max_bounce
         bs, weight = bsdf.sample(ctx, si, rng.next_float32(),
                                  mi.Point2f(rng.next_float32(), rng.next_float32()))
         # Only the non-delta lobes: the delta ones are the eye path's own continuation.
@@ -72,23 +94,45 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
         # most max_bounce after the eye path's: the photons read after k gather segments
         # may have max_bounce - k at most (bounce_left), the emission seen after k must
         # have k <= max_bounce.
-        bounded = max_depth != UNLIMITED_DEPTH
         hit, hit_bsdf, active, beta, seen, bounce_left = _to_non_delta(
             scene, ray, beta, active, rng, limit, caustics, glossy,
-            max_bounce=points.max_bounce if bounded else None)
+            max_bounce=max_bounce if bounded else None)
         est = gather_flux(maps, hit, hit_bsdf, radius, active, max_bounce=bounce_left,
                           kernel=kernel)
         value = dr.select(active, beta * est.radiance(), 0.0) + seen
-        part_total, part_found = accumulate(points, value, est.found, width)
+        got = mi.Float(est.found)
+        if rays > 1:
+            value, got = _per_point(value, got, count, rays)
+        part_total, part_found = accumulate(points, value, got, width)
         total += part_total
         found += part_found
         dr.eval(total, found)
+        j += rays
         elapsed = time.perf_counter() - start
-        if elapsed >= 10 * (said + 1) and j + 1 < samples:     # a line every 10 s or so
+        if elapsed >= 10 * (said + 1) and j < samples:     # a line every 10 s or so
             said = int(elapsed // 10)
             log.info("final gather: %d of %d rays per visible point, %.0f s, about %.0f s "
-                     "left", j + 1, samples, elapsed, elapsed / (j + 1) * (samples - j - 1))
+                     "left", j, samples, elapsed, elapsed / j * (samples - j))
     return total, found
+
+
+def _per_point(value, found, count: int, rays: int):
+    """Sums over a batch's ``rays`` rays of each of ``count`` points (lane ``l`` is point
+    ``l % count``), added ray after ray in one loop: the same order in every run."""
+    point = dr.arange(mi.UInt32, count)
+    total_value = dr.zeros(mi.Spectrum, count)
+    total_found = dr.zeros(mi.Float, count)
+    k = dr.zeros(mi.UInt32, count)
+    stride, n = dr.opaque(mi.UInt32, count), dr.opaque(mi.UInt32, rays)
+    dr.eval(value, found)
+
+    def body(k, total_value, total_found):
+        at = point + k * stride
+        return (k + 1, total_value + dr.gather(mi.Spectrum, value, at),
+                total_found + dr.gather(mi.Float, found, at))
+    k, total_value, total_found = dr.while_loop((k, total_value, total_found),
+                                                lambda k, *_: k < n, body)
+    return total_value, total_found
 
 
 def _to_non_delta(scene, ray, beta, active, rng, limit: int, caustics: bool,

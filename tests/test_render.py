@@ -404,3 +404,17 @@ def test_a_scene_smaller_than_the_maps_resolve_is_refused_naming_its_size(integr
                                          r"its shapes' bounding box\), less than 1e-12.*scale "
                                          r"the scene up"):
         mi.load_dict({"type": integrator, "photon_count": 1000}).render(scene)
+
+
+def test_pm_mean_knn_radius_is_a_mean_of_its_radii():
+    """Every estimate capped at max_radius: the mean radius is the cap (float32's 0.05). Summed
+    by float32 atomics it came out 0.05003, above the cap; the estimates are counted
+    exactly (a float32 count stops at 2^24)."""
+    scene = mi_partpm.load_scene("cornell_box", resolution=(64, 64), spp=4)
+    integrator = mi.load_dict({"type": "pm", "photon_count": 50000, "k": 500,
+                               "max_radius": 0.05})
+    render(scene, integrator)
+    stats = integrator.stats
+    assert stats["capped_share"] == 1.0
+    assert stats["mean_knn_radius"] == pytest.approx(float(np.float32(0.05)), rel=1e-6)
+    assert stats["estimates"] > 64 * 64 * 4 * 0.8
