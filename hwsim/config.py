@@ -226,9 +226,10 @@ class PEConfig:
         _whole_ints(self)
         if self.costs == "fitted" and not any(getattr(self, name) for name in seconds):
             raise ValueError(f'pe.costs = "fitted" with no fitted cost: every seconds_per_* '
-                             f"is 0 ({self.fitted_costs}: a fit that found no time per action "
-                             f"needs a larger workload, or set costs = \"assumed\"; in Python "
-                             f"PEConfig.from_file reads a costs file)")
+                             f"is 0 ({self.fitted_costs} gave no time per action, a fit on "
+                             f"too small a workload: calibrate on a larger one or set costs = "
+                             f"\"assumed\"; or the costs were not read from it: in Python "
+                             f"PEConfig.from_file or load_config reads them)")
 
     @classmethod
     def from_file(cls, path) -> "PEConfig":

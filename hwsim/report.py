@@ -48,13 +48,17 @@ def _scaled(config, name, factor):
     new = max(1, int(round(value * factor))) if isinstance(value, int) else value * factor
     try:
         return config.with_(**({group: {key: new}} if group else {key: new}))
-    except ValueError:
-        return None
+    except ValueError as e:
+        if str(e).startswith(f"{name} must be"):       # the value, out of its range
+            return None
+        raise
 
 
-def _ratio(a: float, b: float) -> float:
-    """``a / b``, NaN where ``b`` is 0 (a config whose every energy constant is 0)."""
-    return a / b if b else float("nan")
+def _ratio(a: float, b: float):
+    """``a / b``, None where ``b`` is 0 (a frame at the smallest n that costs no energy: every
+    constant it would pay is 0, e.g. a config of link and adder energy alone with one PE,
+    which gathers nothing)."""
+    return a / b if b else None
 
 
 def swept_constants(config) -> tuple:
@@ -67,7 +71,7 @@ def swept_constants(config) -> tuple:
 def sensitivity(config, loads, factors=(0.5, 2.0)) -> list:
     """Each assumed constant times 0.5 and 2: the speedup at the largest n (with the gather,
     one PE per map), the gather's share of the frame and the energy of a frame at the largest
-    n over that at the smallest (NaN where a frame costs no energy), against the unchanged
+    n over that at the smallest (None where that frame costs no energy), against the unchanged
     config. With fitted compute costs (``[pe] costs = "fitted"``) the ``cycles_per_*``
     constants are not assumed, and not swept (:func:`swept_constants`). A scaling that leaves
     a constant's allowed range (a value near its top, doubled) has a row with ``"skipped"``
@@ -513,15 +517,17 @@ def _format_sensitivity(sens, n, first_n) -> str:
     sens = [r for r in sens if not r.get("skipped")]
     speeds = [r["speedup"] for r in sens]
     shares = [r["gather_share"] for r in sens]
-    energy = [r["energy_ratio"] for r in sens if r["energy_ratio"] == r["energy_ratio"]]
+    energy = [r["energy_ratio"] for r in sens if r["energy_ratio"] is not None]
     dram = [_mb(r["dram_bytes"]) for r in sens]
     worst = min(sens, key=lambda r: r["speedup"])
     if n == first_n:
         return (f"sensitivity: one n recorded (n = {n}), so no speedup to vary; record "
                 f"several (partpm speedup SCENE --maps 1,2,4,...)")
+    configured = sens[0]["energy_ratio"]
     energy_text = (f"{min(energy):.2f}-{max(energy):.2f}x (as configured "
-                   f"{sens[0]['energy_ratio']:.2f}x)" if energy else
-                   "not defined (every energy constant is 0)")
+                   + (f"{configured:.2f}x)" if configured is not None else
+                      f"not defined: a frame at n = {first_n} costs no energy)")
+                   if energy else f"not defined (a frame at n = {first_n} costs no energy)")
     return (f"sensitivity (each assumed constant x0.5 and x2): speedup at n = {n} over "
             f"n = {first_n} {min(speeds):.2f}-{max(speeds):.2f} (as configured "
             f"{sens[0]['speedup']:.2f}; lowest with {worst['constant']} "

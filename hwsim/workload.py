@@ -170,7 +170,7 @@ def _load_map_workloads(path: Path, n: int, meta: dict) -> MapWorkloads:
                                  f"{a.min()}")
             if k != "map_seconds" and a.size and not np.all(a == np.floor(a)):
                 raise ValueError(f"{path}: {k} counts, so its values must be whole numbers "
-                                 f"(WORKLOAD.md: uint32), got {a[a != np.floor(a)][0]!r}")
+                                 f"(WORKLOAD.md: integers), got {a[a != np.floor(a)][0]!r}")
             arrays[k] = a
     if np.any(arrays["photons_found"] > arrays["photons_tested"]):
         raise ValueError(f"{path}: photons_found exceeds photons_tested for some query (a "

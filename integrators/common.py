@@ -154,10 +154,9 @@ class PhotonMapper(mi.SamplingIntegrator):
         #: limit does (the command line's first Ctrl-C); the image has the passes so far.
         self.stop_requested = None
         self._cancelled = False
-        # (render seed, eye samples) of the last render(), for the sample() call that
-        # Mitsuba's aov makes right after it (see :meth:`sample`)
-        self._seed_for_sample = None
-        self._eye_samples = 0
+        # (scene, seed) of the last render(), for the sample() calls that Mitsuba's aov
+        # makes right after it (see :meth:`sample`)
+        self._last_render = None
         # The maps, radius and statistics of a render are the integrator's: a render (or a
         # wrapper's sample()) from a second thread waits for the one in progress to end.
         self._busy = threading.RLock()
@@ -398,10 +397,10 @@ class PhotonMapper(mi.SamplingIntegrator):
             # (not cleared when it ends: inside aov Mitsuba calls render() and then sample(),
             # and a cancel() during the one must end the other too)
             self._cancelled = False
-            self._seed_for_sample = None
+            self._last_render = None
             with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
                 image = self._render(scene, sensor, seed, spp, develop, evaluate)
-            self._seed_for_sample = (_as_int(seed), self._eye_samples)
+            self._last_render = (id(scene), _as_int(seed))
             return image
 
     @contextmanager
@@ -440,7 +439,6 @@ class PhotonMapper(mi.SamplingIntegrator):
             self.radius = self.search_radius(scene)
             self._start_stats(seed)
             camera = CameraPass(scene, sensor, seed, spp, self.aov_names(), self.passes > 1)
-            self._eye_samples = camera.width
             self.backend.check_same(self._settings(scene, camera, seed))
             L, alpha = self._passes(scene, camera, seed)
             image = camera.develop(L, alpha, develop)
@@ -763,18 +761,18 @@ class PhotonMapper(mi.SamplingIntegrator):
 
         Mitsuba's ``aov`` renders its nested integrator alone (``render()``: the image
         ``mi.render`` returns) and then once more through ``sample()`` (the film's channels):
-        the first call after a ``render()`` of as many eye samples takes that render's seed
+        ``sample()`` takes the seed of this integrator's last ``render()`` of the same scene
         too, so that the two use the same photons. A wrapper that does not call ``render()``
         (``moment``) is not told ``mi.render``'s seed: its photons come from the ``seed`` prop
-        alone."""
+        alone (and the seed of an earlier ``render()`` of the scene, if any)."""
         if self.backend.name != "local":
             raise ValueError(f"{type(self).__name__} with backend={self.backend.name!r} "
                              f"must be the scene's top-level integrator (its ranks gather "
                              f"whole images); use backend='local' inside moment or aov")
         _wait_for_background_tasks()
-        handed, self._seed_for_sample = self._seed_for_sample, None
-        render_seed = handed[0] if handed and handed[1] == dr.width(ray.o) else 0
         with self._busy, follow_mitsuba_level(), self._freeing_maps():
+            last = self._last_render
+            render_seed = last[1] if last is not None and last[0] == id(scene) else 0
             try:
                 return self._sample(scene, sampler, ray, active, render_seed)
             finally:
@@ -797,15 +795,16 @@ class PhotonMapper(mi.SamplingIntegrator):
                               pass_index=pass_index)
             self._add_stats(passes=1)
             timed_out = 0 < self.time_limit <= time.perf_counter() - start
+            asked = self._cancelled or \
+                (self.stop_requested is not None and bool(self.stop_requested()))
             ended = self.cannot_run_pass(pass_index + 1) if pass_index + 1 < self.passes \
                 else None
-            if timed_out or ended or self._cancelled or \
-                    (self.stop_requested is not None and self.stop_requested()):
+            if timed_out or asked or ended:
                 if pass_index + 1 < self.passes:
-                    if ended and not timed_out:
+                    if ended and not (timed_out or asked):
                         log.warning("pass %d: %s, so the render ends here, before its time "
                                     "limit", pass_index + 1, ended)
-                    self._stopped_by(timed_out, not (timed_out or ended), bool(ended))
+                    self._stopped_by(timed_out, asked, bool(ended))
                 break
         self._finish(terms)
         return eye.emitted + _radiance(terms), eye.valid, []

@@ -177,7 +177,7 @@ class PartPMIntegrator(PhotonMapper):
     where the estimate is taken. Every emitter plugin of Mitsuba 3.9.1 emits photons (area,
     point, spot, directional, directionalarea, projector, constant, envmap, sunsky). The plugin
     works inside ``moment`` and ``aov`` (its ``sample()`` traces its maps with the ``seed`` prop
-    and, inside ``aov``, the seed of the ``render()`` that ``aov`` calls first, and refines
+    and the seed of its last ``render()`` of the scene, which ``aov`` calls first, and refines
     the estimate at the wrapper's rays pass after pass), and honours
     ``render()``'s ``sensor``, ``seed``, ``spp``, ``develop`` and ``evaluate``. After a render,
     ``stats`` holds the photons stored, the map bytes and the time of every phase. Variants:

@@ -729,7 +729,8 @@ def test_a_bad_costs_file_names_the_key(tmp_path):
     from hwsim.calibrate import read_costs
     from hwsim.config import PEConfig
     with pytest.raises(ValueError, match=r'pe.costs = "fitted" with no fitted cost: every '
-                       r'seconds_per_\* is 0 \(x.toml'):
+                       r'seconds_per_\* is 0 \(x.toml gave no time per action.* or the costs '
+                       r'were not read from it'):
         PEConfig(costs="fitted", fitted_costs="x.toml")
     with pytest.raises(ValueError, match=r"pe.fitted_costs = 'nope.toml' is read only with "
                        r'pe.costs = "fitted"'):
@@ -752,7 +753,7 @@ def test_a_bad_costs_file_names_the_key(tmp_path):
     path.write_text(re.sub(r"(seconds_per_\w+) = .*", r"\1 = 0", text))
     (tmp_path / "hw.toml").write_text('[pe]\ncosts = "fitted"\nfitted_costs = "fitted_costs.toml"\n')
     with pytest.raises(ValueError, match=r"no fitted cost: every seconds_per_\* is 0 \(.*"
-                       r"fitted_costs.toml: a fit that found no time"):
+                       r"fitted_costs.toml gave no time per action"):
         load_config(tmp_path / "hw.toml")
 
 
@@ -848,6 +849,10 @@ def test_report_on_a_seeded_workload_matches_the_golden_report(tmp_path):
     assert 0.9 < result["calibration"]["self"]["r2"] < 1
 
 
+def _no_constant(name):
+    raise ValueError(f"report.json holds {name}, which strict JSON does not")
+
+
 def test_report_runs_at_the_edges_of_the_allowed_ranges(tmp_path):
     """A constant at the top of its range (its x2 would leave it) and a timing-only config
     (every energy constant 0) give a report: the sweep leaves that scaling out and says so,
@@ -865,7 +870,14 @@ def test_report_runs_at_the_edges_of_the_allowed_ranges(tmp_path):
                and r["speedup"] > 0 for r in result["sensitivity"])
     text = format_report(result)
     assert "left out, beyond the allowed range: memory.sram_bytes x2" in text
-    assert "not defined (every energy constant is 0)" in text
+    assert "not defined (a frame at n = 1 costs no energy)" in text
+    assert all(r["energy_ratio"] is None for r in result["sensitivity"] if not r.get("skipped"))
+    json.loads((tmp_path / "out" / "report.json").read_text(), parse_constant=_no_constant)
+    # Only link energy: one PE gathers nothing, so its frame costs none either.
+    link = HardwareConfig().with_(energy={f.name: 0.0 for f in fields(EnergyConfig)} |
+                                  {"pj_per_link_byte": 1.0})
+    text = format_report(run_report(_synthetic_dir(tmp_path / "b"), link, tmp_path / "out2"))
+    assert "not defined (a frame at n = 1 costs no energy)" in text
     header = (tmp_path / "out" / "sensitivity.csv").read_text().splitlines()[0]
     assert header.split(",")[-1] == "skipped"
 

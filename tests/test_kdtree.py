@@ -1011,7 +1011,7 @@ def test_a_contribution_of_another_type_names_result_type(kind):
     assert isinstance(total, mi.Color3f)
 
 
-def test_radius_neighbours_answers_as_query_ball_point():
+def test_radius_neighbours_answers_as_query_ball_point(monkeypatch):
     """The NumPy front end of the radius query gives scipy's query_ball_point: the indices
     of every query's photons (sorted) and, with return_length, their counts; over unsorted
     queries (more than sort them), per-query radii, several maps and a range of maps."""
@@ -1054,20 +1054,33 @@ def test_radius_neighbours_answers_as_query_ball_point():
     want = cKDTree(spots).query_ball_point(near, 0.9)
     assert max(len(a) for a in got) > 2000
     assert all(np.array_equal(a, np.sort(b)) for a, b in zip(got, want))
+    # More indices in all than one 32-bit index array holds: refused before the second walk,
+    # pointing to the counts (here with the bound lowered).
+    from mi_partpm.kdtree import radius as radius_module
+    monkeypatch.setattr(radius_module, "MAX_INDICES", 9999)
+    with pytest.raises(ValueError, match=r"the queries find 10,000 photons in all, more than "
+                                         r"the 9,999 .* return_length=True"):
+        radius_neighbours(forest, q[:2], 10.0)
 
 
 def test_a_callback_that_cannot_be_called_as_the_query_calls_it_is_named():
     """A contribution that is not a function, or takes other arguments than the walk
     gives, was a Dr.Jit loop error ("encountered an exception (see above)") whose cause lay
     two exceptions down; now it is a TypeError naming the callback and its arguments."""
-    from mi_partpm.kdtree.radius import CallbackError
+    from mi_partpm.kdtree import CallbackError
     forest = build_forest(np.random.default_rng(2).random((300, 3)))
     q = np.full((1, 3), 0.5)
-    with pytest.raises(TypeError, match=r"contribution must be a function \(a callback\), "
-                                        r"got NoneType"):
+    with pytest.raises(CallbackError, match=r"contribution must be a function \(a callback\), "
+                                            r"got NoneType"):
         radius_query(forest, q, 0.1, None)
-    with pytest.raises(TypeError, match=r"accept must be a function"):
+    with pytest.raises(CallbackError, match=r"accept must be a function"):
         radius_query(forest, q, 0.1, lambda i, d2, a, s: mi.Float(1), accept=3)
+    # Refused before anything is walked, also where nothing would be (an empty forest).
+    empty = build_forest(np.zeros((0, 3)))
+    with pytest.raises(CallbackError, match=r"accept must be a function"):
+        knn_query(empty, q, 3, accept=3)
+    with pytest.raises(CallbackError, match=r"contribution must be a function"):
+        knn_query(empty, q, 3, "sum")
     for call, args in ((lambda: radius_query(forest, q, 0.1, lambda i, d2: mi.Float(1)),
                         r"contribution is called with 4 arguments \(index, dist2, active, "
                         r"state\), and cannot take them"),
@@ -1107,6 +1120,10 @@ def test_knn_leaves_the_radii_in_the_callers_state_at_any_query_count(queries):
     np.testing.assert_array_equal(state.radius2.numpy(), res.radius2.numpy())
     total = res.total.numpy()                        # sum of d2 / r2 over 4: in (0, 4]
     assert np.all((total > 0) & (total <= 4 + 1e-5))
+    # An empty forest: the radii are the cap's, in the state too.
+    state = State(dr.zeros(mi.Float, queries))
+    res = knn_query(build_forest(np.zeros((0, 3))), q, 4, max_radius=0.5, state=state)
+    assert np.all(state.radius2.numpy() == 0.25) and np.all(res.radius2.numpy() == 0.25)
 
 
 def test_morton_codes_take_what_morton_order_takes():

@@ -457,6 +457,15 @@ def test_final_gather_rays_run_side_by_side_on_few_points_with_the_same_streams(
     single = render(scene, mi.load_dict(desc))
     assert batched.mean() > 0.05
     assert np.abs(batched - single).max() <= 1e-6 * single.max()
+    # The seeds given by hand are those PCG32's constructor gives one ray at a time (it
+    # adds the lane to both), so the streams are the ones the gather had before batching.
+    count, n, seed = 7, 24, 12345
+    lanes = dr.arange(mi.UInt64, count)
+    for j in (0, 5):
+        made = mi.PCG32(count, seed, lanes * n + j)
+        by_hand = mi.PCG32(count)
+        by_hand.seed(seed + lanes, lanes * (n + 1) + j)
+        assert np.array_equal(made.next_float32().numpy(), by_hand.next_float32().numpy())
 
 
 def test_final_gather_needs_nee():

@@ -434,8 +434,8 @@ def _write(args, out: Path, image, film, stats: dict, seconds: dict, integrator)
 def _write_image(out: Path, film):
     """The EXR with the film's channels (R, G, B, alpha where the film has it, then the
     AOVs by name, as Mitsuba's own film writes them) and the PNG beside it (the film's colour
-    and alpha only: its first ``base_channels_count()``, Y or R, G, B, with A where the
-    film's pixel format has it), both from the film, so they show one render (inside
+    and alpha only: its first ``base_channels_count()``, Y, or three colour channels (R, G,
+    B; an xyz film's X, Y, Z as they are), with A where the film has it), both from the film, so they show one render (inside
     Mitsuba's ``aov`` the image ``mi.render`` returns is another render of the nested
     integrator), each written whole or not at all (see :func:`~.common.write_atomic`): a
     checkpoint may be read while the render goes on."""

@@ -16,10 +16,12 @@ from .forest import (LAYOUTS, LEAF_BOX_BYTES, LEAF_ENTRY_BYTES, LEAF_SIZE, MAX_C
                      NODE_BYTES, RECORD_FLOATS, Forest, build_forest, morton_codes, morton_order,
                      rows_in_order, shared_leaf_size, tree_bytes, tree_depth)
 from .knn import KnnResult, knn_neighbours, knn_query, radius_neighbours
-from .radius import ORDERS, WALKS, QueryStats, photon_position, radius_query
+from .radius import (ORDERS, WALKS, CallbackError, QueryStats, ResultTypeError,
+                     photon_position, radius_query)
 
 __all__ = ["Forest", "build_forest", "morton_codes", "morton_order", "tree_bytes",
            "tree_depth", "shared_leaf_size", "LAYOUTS", "LEAF_SIZE", "NODE_BYTES",
            "LEAF_ENTRY_BYTES", "LEAF_BOX_BYTES", "RECORD_FLOATS", "radius_query", "QueryStats",
            "photon_position", "ORDERS", "WALKS", "knn_query", "KnnResult", "knn_neighbours",
-           "rows_in_order", "MAX_MAPS", "MAX_COORD", "radius_neighbours"]
+           "rows_in_order", "MAX_MAPS", "MAX_COORD", "radius_neighbours", "CallbackError",
+           "ResultTypeError"]

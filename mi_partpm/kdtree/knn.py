@@ -168,6 +168,9 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         raise ValueError(f"walk must be one of {', '.join(repr(w) for w in WALKS)}, got "
                          f"{walk!r}")
     result_type = mi.Float if result_type is None else result_type
+    if contribution is not None:
+        check_callable(contribution, "contribution")
+    accept = checked_callback(accept, "accept")
     p = as_points(p, "p")
     width = dr.width(p)
     active = check_per_query(active, "active", width, radius=False)
@@ -191,13 +194,11 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
         if width and max_radius is not None:     # the cap, as when fewer than k are found
             radius2 = radius2 + r2max
         res = KnnResult(dr.zeros(result_type, width), radius2, mi.UInt32(zeros), stats)
+        _hand_back_radii(state, radius2)
         if neighbours:
             return (res, [dr.full(mi.Float, dr.inf, width)] * k,
                     [dr.full(mi.UInt32, 0xFFFFFFFF, width)] * k)
         return res
-    if contribution is not None:
-        check_callable(contribution, "contribution")
-    accept = checked_callback(accept, "accept")
     if with_payload and contribution is not None:
         own = checked_callback(contribution, "contribution")
 
@@ -219,14 +220,19 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
                     QueryStats(*[unpermute(v, perm, width) for v in (
                         res.stats.nodes_visited, res.stats.photons_tested,
                         res.stats.photons_found)]) if with_stats else None)
-    if perm is not None and hasattr(state, "radius2") and \
-            not type(state).__module__.startswith("mitsuba"):
+    if perm is not None:
         # The walk set the radii on the sorted copy of the state: the caller's gets them too.
-        state.radius2 = mi.Float(res.radius2)
+        _hand_back_radii(state, res.radius2)
     if neighbours:
         return res, [unpermute(v, perm, width) for v in d2], \
             [unpermute(v, perm, width) for v in idx]
     return res
+
+
+def _hand_back_radii(state, radius2):
+    """Set the caller's ``state.radius2`` (a state of Python's own with that field)."""
+    if hasattr(state, "radius2") and not type(state).__module__.startswith("mitsuba"):
+        state.radius2 = mi.Float(radius2)
 
 
 @dr.syntax

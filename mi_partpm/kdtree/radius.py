@@ -33,7 +33,7 @@ import numpy as np
 from .forest import RECORD_FLOATS, Forest, as_points, check_coordinates, morton_codes
 
 __all__ = ["radius_query", "QueryStats", "order_queries", "group_balls", "group_lanes",
-           "radius_array", "ORDERS", "WALKS"]
+           "radius_array", "ORDERS", "WALKS", "CallbackError", "ResultTypeError"]
 
 #: Query orders: "morton" sorts the query points along a Z-order curve before the walk (and
 #: returns results in the caller's order); "given" walks them as they come.
@@ -462,6 +462,12 @@ def radius_query(forest: Forest, p, r, contribution, result_type=None, active=Tr
         stats.nodes_visited, stats.photons_tested, stats.photons_found)])
 
 
+#: The most photon indices :func:`radius_indices` writes at once (one UInt32 array).
+MAX_INDICES = (1 << 32) - 2
+#: What a slot of :func:`radius_indices` holds until a photon is written there.
+UNWRITTEN = 0xFFFFFFFF
+
+
 def _walk_setup(forest, p, r, active, maps, order, walk):
     """Every argument of a radius walk checked, and the queries put in walking order:
     ``(p, r, active, perm, ball, table, width)``, or None where there is nothing to walk
@@ -494,25 +500,35 @@ def radius_indices(forest: Forest, p, r, lengths, maps=None) -> np.ndarray:
     same ``maps``). One more walk writes every photon found at its query's next slot."""
     lengths = np.asarray(lengths, dtype=np.int64)
     total = int(lengths.sum())
+    if total > MAX_INDICES:
+        raise ValueError(f"the queries find {total:,} photons in all, more than the "
+                         f"{MAX_INDICES:,} one index array holds: give return_length=True for "
+                         f"the counts, fewer queries at a time, or a smaller r")
     walked = _walk_setup(forest, p, r, True, maps, "morton", "group")
     if walked is None or total == 0:
         return np.zeros(0, np.int64)
     p, r, active, perm, ball, table, width = walked
     starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-    out = dr.zeros(mi.UInt32, total)
+    out = dr.full(mi.UInt32, UNWRITTEN, total)       # no photon index is that large
     dr.make_opaque(out)
     sink = (out, permute(mi.UInt32(starts.astype(np.uint32)), perm, width),
             permute(mi.UInt32(lengths.astype(np.uint32)), perm, width))
     _walk(forest, p, r * r, ball, None, mi.UInt32, active, table, False, None, None,
           sink=sink)
     dr.eval(out)
-    return out.numpy().astype(np.int64)
+    found = out.numpy()
+    if (found == UNWRITTEN).any():
+        raise RuntimeError("the second walk of a radius query found fewer photons than the "
+                           "first counted: some lists would be short")
+    return found.astype(np.int64)
+
 
 
 def check_callable(f, name: str):
-    """A TypeError naming ``name`` unless ``f`` can be called (a callback)."""
+    """A :class:`CallbackError` naming ``name`` unless ``f`` can be called (a callback)."""
     if not callable(f):
-        raise TypeError(f"{name} must be a function (a callback), got {type(f).__name__}")
+        raise CallbackError(f"{name} must be a function (a callback), got "
+                            f"{type(f).__name__}")
 
 
 def tree_row(table, k, bounds, active=True):
