@@ -930,7 +930,12 @@ def test_hwsim_cli_points_at_the_workloads_folder_and_refuses_a_file_as_out(tmp_
     taken = tmp_path / "taken"
     taken.write_text("")
     assert main(["hwsim", str(tmp_path / "workloads"), "--out", str(taken)]) == 2
-    assert f"the output folder {taken} is a file" in capsys.readouterr().err
+    assert f"--out {str(taken)!r} is a file" in capsys.readouterr().err
+    # An empty --out wrote into the working folder and said it wrote "/report.json"; the
+    # refusals name --out and come before the workloads are read.
+    assert main(["hwsim", str(tmp_path / "workloads"), "--out", ""]) == 2
+    err = capsys.readouterr()
+    assert "--out needs a folder, got ''" in err.err and "n = " not in err.out
 
 
 def test_hwsim_cli_refuses_an_out_folder_it_cannot_write_before_simulating(tmp_path, capsys,

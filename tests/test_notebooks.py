@@ -77,16 +77,19 @@ def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkey
     def fake_compare(settings, out, progress=print):
         runs.append("compare")
         result = {"settings": {**asdict(settings), "resolution": list(settings.resolution),
-                               "k": 10}, "metrics": {}, "code": notebook.code_version(),
+                               "k": 10}, "calibrated_knn_radius": 0.1, "metrics": {},
+                  "code": notebook.code_version(),
                   "scene_sha256": scene_digest(settings.scene)}
         out.mkdir(parents=True, exist_ok=True)
         (out / "metrics.json").write_text(json.dumps(result))
         return result
 
-    def fake_speedup(scene, maps, out, photons, resolution, spp, repeats, progress=print):
+    def fake_speedup(scene, maps, out, photons, resolution, spp, repeats, radius_fraction,
+                     seed, progress=print):
         runs.append("speedup")
         result = {"photons_emitted": photons, "resolution": list(resolution), "spp": spp,
-                  "repeats": repeats, "rows": [{"n": n} for n in maps],
+                  "repeats": repeats, "radius_fraction": radius_fraction, "seed": seed,
+                  "rows": [{"n": n} for n in maps],
                   "code": notebook.code_version(), "scene_sha256": scene_digest(scene)}
         (out / "workloads").mkdir(parents=True, exist_ok=True)
         (out / "workloads" / "meta.json").write_text("{}")
@@ -115,19 +118,33 @@ def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkey
     notebook.compare("cornell_box", progress=said.append)
     assert runs.count("compare") == 3 and said[-1].endswith("has other settings: running "
                                                             "again"), said[-1]
-    # A result file without a code version: run again.
+    # A run of the same sizes but another radius or seed (the README's commands take both),
+    # or a compare whose k was given by hand rather than calibrated: run again (they were
+    # reused).
     done = tmp_path / "smoke" / "speedup_cornell_box" / "speedup.json"
+    for key, value in (("radius_fraction", 0.2), ("seed", 7)):
+        result = json.loads(done.read_text())
+        done.write_text(json.dumps({**result, key: value}))
+        before = runs.count("speedup")
+        notebook.speedup("cornell_box", progress=said.append)
+        assert runs.count("speedup") == before + 1 and "other settings" in said[-1], said[-1]
+    metrics = tmp_path / "smoke" / "compare_cornell_box" / "metrics.json"
+    result = json.loads(metrics.read_text())
+    metrics.write_text(json.dumps({**result, "calibrated_knn_radius": None}))
+    notebook.compare("cornell_box", progress=said.append)
+    assert runs.count("compare") == 4 and "other settings" in said[-1], said[-1]
+    # A result file without a code version: run again.
     result = json.loads(done.read_text())
     del result["code"]
     done.write_text(json.dumps(result))
     notebook.speedup("cornell_box", progress=said.append)
-    assert runs.count("speedup") == 3 and "code of unknown version" in said[-1], said
+    assert runs.count("speedup") == 5 and "code of unknown version" in said[-1], said
     metrics = tmp_path / "smoke" / "compare_cornell_box" / "metrics.json"
     result = json.loads(metrics.read_text())
     del result["code"]
     metrics.write_text(json.dumps(result))
     notebook.compare("cornell_box", progress=said.append)
-    assert runs.count("compare") == 4 and "code of unknown version" in said[-1], said
+    assert runs.count("compare") == 5 and "code of unknown version" in said[-1], said
     # A user's scene file: its run's folder is named after the file's stem (its path made
     # folders within folders), and a change to a file it includes runs it again (the
     # results were reused: the key held the settings and the code, not the user's scene).

@@ -109,14 +109,34 @@ def path_reference(s: ConvergeSettings, out: Path, say) -> np.ndarray:
             "resolution": list(s.resolution), "spp": s.reference_spp, "seed": s.seed,
             "mitsuba": mi.__version__, "variant": mi.variant()}
     exr, info = out / "reference.exr", out / "reference.json"
-    if exr.is_file() and info.is_file() and json.loads(info.read_text()) == meta:
-        say(f"reference: reusing {exr}")
-        return _image(mi.Bitmap(str(exr)))
+    if exr.is_file() and info.is_file() and _json_or_none(info) == meta:
+        try:
+            image = _image(mi.Bitmap(str(exr)))
+        except RuntimeError as e:            # cut short, or damaged since
+            say(f"reference: {exr} cannot be read ({str(e).strip()}): rendering it again")
+        else:
+            if image.shape[:2] == tuple(s.resolution[::-1]):
+                say(f"reference: reusing {exr}")
+                return image
+            say(f"reference: {exr} is not {s.resolution[0]}x{s.resolution[1]}: rendering it "
+                f"again")
     ref, _ = path_in_chunks(_scene(s), s.reference_spp, 1_000_003 + s.seed * 10_007,
                             CHUNK_SPP, say=say, label="reference: path")
-    mi.Bitmap(ref.astype(np.float32)).write(str(exr))
+    # The record goes first and comes back last: an image cut short is never vouched for.
+    info.unlink(missing_ok=True)
+    temporary = exr.with_name(".reference.writing.exr")
+    mi.Bitmap(ref.astype(np.float32)).write(str(temporary))
+    temporary.replace(exr)
     info.write_text(json.dumps(meta, indent=2) + "\n")
     return ref
+
+
+def _json_or_none(path: Path):
+    """The JSON in ``path``, or None where it is not JSON (cut short)."""
+    try:
+        return json.loads(path.read_text())
+    except ValueError:
+        return None
 
 
 def _partpm(s: ConvergeSettings, ref, say) -> list:

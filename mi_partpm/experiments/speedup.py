@@ -305,7 +305,7 @@ def run_speedup(scene_name: str, maps_list: Sequence[int], out_dir, photons: int
     result = {"scene": scene_name, "photons_emitted": photons,
               "photons_stored": len(s.traced), "resolution": list(resolution), "spp": spp,
               "queries": int(s.queries), "radius": s.radius, "repeats": repeats,
-              "streams": lcm, "code": code, "rows": rows, "timing_doubts": doubts,
+              "radius_fraction": radius_fraction, "seed": seed, "streams": lcm, "code": code, "rows": rows, "timing_doubts": doubts,
               "scene_sha256": scene_digest(scene_name, data_dir)}
     _write(out, result, rows)
     if save_workload_files:
