@@ -21,8 +21,33 @@ def main() -> int:
                 signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     except KeyboardInterrupt:
         print("partpm: interrupted", file=sys.stderr)
+        _abort_the_job()
         return 130
-    return command()
+    try:
+        return command()
+    except KeyboardInterrupt:           # before the command's own handling began (the MPI
+        print("partpm: interrupted", file=sys.stderr)      # job's start, say)
+        _abort_the_job()
+        return 130
+
+
+#: Where mpiexec says how many ranks it started (MPICH's hydra, Open MPI, PMIx), as
+#: ``mi_partpm.backends`` reads them.
+LAUNCHER_SIZE_VARIABLES = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE")
+
+
+def _abort_the_job():
+    """A rank of an MPI job interrupted before the command started: the other ranks would
+    wait for it in their first collective call for ever, so the whole job ends here."""
+    import os
+    if not any(os.environ.get(name, "").isdigit() and int(os.environ[name]) > 1
+               for name in LAUNCHER_SIZE_VARIABLES):
+        return
+    try:
+        from mpi4py import MPI
+        MPI.COMM_WORLD.Abort(130)
+    except ImportError:                 # no MPI: the job cannot be told, as before
+        pass
 
 
 if __name__ == "__main__":

@@ -676,6 +676,10 @@ class PhotonMapper(mi.SamplingIntegrator):
                 "mean_radius": float(dr.mean(dr.sqrt(state.r2))[0])
                 if hasattr(state, "r2") else self.scheduled_radius(done)}
         timed_out = self.time_limit > 0 and elapsed >= self.time_limit
+        if self.passes > 1:
+            # Every process by the root's clock: its on_pass time is left out, and the
+            # others, which waited for it, counted it and stopped the job early.
+            timed_out = self.backend.root_says(timed_out)
         asked = self._cancelled or \
             (self.stop_requested is not None and bool(self.stop_requested()))
         ended = self.cannot_run_pass(done) if done < self.passes else None

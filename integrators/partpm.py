@@ -206,6 +206,10 @@ class PartPMIntegrator(PhotonMapper):
             if (props is not None and "passes" in props) or not self.time_limit \
             else UNTIL_TIME_LIMIT
         self.alpha = read_float(props, "alpha", 0.7, low=0.0, high=1.0, high_open=True)
+        if self.time_limit and self.passes == 1:
+            raise ValueError(f"time_limit = {self.time_limit:g} stops a progressive render "
+                             f"between passes: with passes = 1 the one pass runs whole (give "
+                             f"passes > 1, or time_limit without passes for passes until it)")
         if props is not None and "alpha" in props and self.passes == 1:
             raise ValueError(f"alpha = {self.alpha:g} sets how fast a progressive render's "
                              f"radius shrinks between passes: it needs passes > 1, or a "

@@ -315,6 +315,12 @@ class Backend:
         limit, or a Ctrl-C it received)."""
         return stop
 
+    def root_says(self, value: bool) -> bool:
+        """The root process's ``value`` on every process (whether a time limit is reached:
+        by the root's clock, which leaves out the time its ``on_pass`` took, as the other
+        processes waited for it)."""
+        return value
+
     def collect(self, stats: dict) -> dict:
         """Every process's ``stats`` on the root (for reporting), and the whole job's
         figures in the root's own (:func:`job_stats`)."""
@@ -387,6 +393,9 @@ class MPIBackend(Backend):
     def agree(self, stop: bool) -> bool:
         from mpi4py import MPI
         return bool(self.comm.allreduce(bool(stop), op=MPI.LOR))
+
+    def root_says(self, value: bool) -> bool:
+        return bool(self.comm.bcast(bool(value), root=0))
 
     def collect(self, stats: dict) -> dict:
         stats.pop("ranks", None)          # a list of an earlier render's ranks

@@ -300,6 +300,13 @@ def test_ranks_stop_after_the_same_pass_at_a_time_limit():
     assert len(passes) == 2 and passes[0] == passes[1], line   # the same passes on both
 
 
+def test_ranks_stop_by_the_roots_clock_which_leaves_out_on_pass():
+    done = _mpi(2, str(HERE / "mpi_scripts" / "slow_on_pass.py"), timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    line = next(x for x in done.stdout.splitlines() if x.startswith("stopped by:"))
+    assert line.split(":")[1].split() == ["time_limit", "time_limit"], line
+
+
 def test_mpi_backend_without_mpi4py_says_what_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "mpi4py", None)    # import mpi4py now fails
     with pytest.raises(Exception, match=r"backend 'mpi' needs mpi4py .*pip install mpi4py "

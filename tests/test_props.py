@@ -299,6 +299,10 @@ def test_one_pass_with_a_time_limit_is_not_progressive_on_the_command_line(capsy
         assert main([*SMALL, "--passes", "1", "--time", "5", *option, "-o", "x.exr"]) == 2
         assert "it needs a progressive render (--passes P > 1, or --time SECONDS without " \
             "--passes)" in capsys.readouterr().err
+    # --time alone with --passes 1 stopped nothing ("1 pass (at most 5 s)").
+    assert main([*SMALL, "--passes", "1", "--time", "5", "-o", "x.exr"]) == 2
+    assert "--time 5 stops a progressive render between passes: with --passes 1 the one " \
+        "pass runs whole" in capsys.readouterr().err
     from mi_partpm.cli.parser import build_parser
     assert "--passes > 1, or --time without --passes" in " ".join(
         build_parser()._subparsers._group_actions[0].choices["render"].format_help().split())

@@ -353,9 +353,9 @@ def write_atomic(path, write):
     checkpoint read during the render) never sees a file half written. The temporary file
     keeps the suffix, which tells Mitsuba the format."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.stem}.writing{path.suffix}")
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         write(str(temporary))
         os.replace(temporary, path)
     except OSError as e:             # replaced or removed since it was checked

@@ -89,6 +89,10 @@ def integrator_desc(args) -> dict:
         if value is not None and not progressive:
             raise UsageError(f"{option} {what} between passes: it needs a progressive render "
                              f"(--passes P > 1, or --time SECONDS without --passes)")
+    if args.time and args.passes == 1:
+        raise UsageError(f"--time {args.time:g} stops a progressive render between passes: "
+                         f"with --passes 1 the one pass runs whole (give --passes P > 1, or "
+                         f"--time without --passes for passes until it)")
     if args.checkpoint_every and not args.time and args.checkpoint_every > args.passes:
         raise UsageError(f"--checkpoint-every {args.checkpoint_every} would write no "
                          f"checkpoint in {args.passes} passes: give K <= --passes")
