@@ -424,7 +424,8 @@ class MPIBackend(Backend):
 def job_stats(ranks: list) -> dict:
     """The whole job's figures from every rank's stats: the photons, segments, tree bytes
     and CPU seconds summed over the ranks, the wall times, waves and peak memory the
-    largest rank's (the slowest rank's times), the maps all of them."""
+    largest rank's (the slowest rank's times), the maps all of them, and ``stopped_by`` the
+    first reason of a rank that stopped on its own."""
     job = {}
     for key in ranks[0]:
         values = [r.get(key) for r in ranks]
@@ -437,6 +438,12 @@ def job_stats(ranks: list) -> dict:
         elif key.startswith("time_") or key in ("waves", "peak_memory_bytes"):
             job[key] = max(values)
     job["maps_owned"] = sorted(m for r in ranks for m in r.get("maps_owned", []))
+    # Why the job ended early: the reason of a rank that stopped on its own (a Ctrl-C to it,
+    # its time limit), not of one that stopped because another did.
+    reasons = [r["stopped_by"] for r in ranks if r.get("stopped_by")]
+    own = [why for why in reasons if why != "another_process"]
+    if reasons:
+        job["stopped_by"] = (own or reasons)[0]
     return job
 
 

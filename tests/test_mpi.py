@@ -614,3 +614,15 @@ def test_mitsubas_own_warnings_are_said_by_rank_0_only(tmp_path):
                 str(tmp_path / "m.exr"), timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert (done.stdout + done.stderr).count("Monochrome mode enabled") == 1, done.stderr
+
+
+def test_the_jobs_stopped_by_is_the_reason_of_a_rank_that_stopped_on_its_own():
+    """A Ctrl-C to rank 2 of 3: ranks 0 and 1 stop because it did ("another_process"),
+    and the job's stopped_by (the top level of rank 0's stats) said so too, where the
+    job was stopped by a request."""
+    from mi_partpm.backends import job_stats
+    ranks = [{"stopped_by": "another_process"}, {"stopped_by": "another_process"},
+             {"stopped_by": "request"}]
+    assert job_stats(ranks)["stopped_by"] == "request"
+    assert job_stats([{"stopped_by": "time_limit"}] * 2)["stopped_by"] == "time_limit"
+    assert "stopped_by" not in job_stats([{"passes": 3}, {"passes": 3}])
