@@ -19,20 +19,16 @@ def main() -> int:
         finally:
             if held:                  # a Ctrl-C held until now is raised here
                 signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-    except KeyboardInterrupt:
-        print("partpm: interrupted", file=sys.stderr)
-        _abort_the_job()
-        return 130
-    try:
         return command()
-    except KeyboardInterrupt:           # before the command's own handling began (the MPI
-        print("partpm: interrupted", file=sys.stderr)      # job's start, say)
+    except KeyboardInterrupt:         # during the imports, or before the command's own
+        print("partpm: interrupted", file=sys.stderr)     # handling began (an MPI job's start)
         _abort_the_job()
         return 130
 
 
-#: Where mpiexec says how many ranks it started (MPICH's hydra, Open MPI, PMIx), as
-#: ``mi_partpm.backends`` reads them.
+#: Where mpiexec says how many ranks it started (MPICH's hydra, Open MPI), as
+#: ``mi_partpm.backends.LAUNCHER_SIZE_VARIABLES`` reads them (not imported: this runs
+#: before, or instead of, the package's imports).
 LAUNCHER_SIZE_VARIABLES = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE")
 
 

@@ -46,34 +46,14 @@ def run(args, code=None) -> int:
         raise ValueError(f"pe_count in {args.config}: the report sets the PE count itself (one "
                          f"PE per map at every recorded n, and P = 1, 2, 4, ... n at the "
                          f"largest n); remove the key (it is simulate()'s, in Python)")
-    _check_out(args.out)
     say = None if args.quiet else (lambda line: print(line, flush=True))
-    result = run_report(args.workloads, config, args.out, args.check, progress=say, code=code)
+    result = run_report(args.workloads, config, args.out, args.check, progress=say, code=code,
+                        out_name="--out")
     if not args.quiet:
         print(format_report(result))
         print(f"wrote    {args.out}/report.json, report.csv, sweep.csv, contention.csv, "
               f"sensitivity.csv, hwsim.png")
     return 0
-
-
-def _check_out(out: str):
-    """Refuse an output folder that cannot be made or written, naming ``--out``, before the
-    workloads are read (the report makes it)."""
-    import os
-    if not str(out).strip():
-        raise ValueError(f"--out needs a folder, got {out!r}")
-    path = Path(out)
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"--out {out!r} is a file: the report writes a folder of files")
-    existing = path
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ValueError(f"--out {out!r} cannot be made: {str(existing)!r} is a file, not a "
-                         f"folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ValueError(f"--out {out!r} cannot be made or written: {str(existing)!r} is not "
-                         f"writable")
 
 
 def main(argv=None) -> int:

@@ -185,13 +185,16 @@ def pe_costs(config) -> dict:
 
 
 def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
-               progress=None, code=None) -> dict:
+               progress=None, code=None, out_name: str = "the output folder") -> dict:
     """Simulate every recorded n, sweep PEs, topologies, DRAM sharing and the assumed
     constants, calibrate on the measured times (and check on ``check_dir``); write the files.
     ``progress``: called with a line before each phase (None: silent). ``code``: the version
     of the code that runs the report, recorded in ``report.json`` (hwsim does not import the
-    renderer, whose sources the version is a hash of: the caller passes it in)."""
+    renderer, whose sources the version is a hash of: the caller passes it in).
+    ``out_name``: what to call ``out_dir`` where it cannot be made (``--out`` on the
+    command line)."""
     say = progress or (lambda *a: None)
+    check_out_folder(out_dir, out_name)         # before the workloads are read
     meta, loads = load_workloads(workload_dir)
     check_dir = None if check_dir is None else Path(check_dir)
     if check_dir is not None and not ((check_dir / "meta.json").is_file()
@@ -203,9 +206,6 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
     say(f"{meta.get('scene', workload_dir)}: n = {', '.join(map(str, sorted(loads)))}, "
         f"{meta['queries']} queries per map")
     out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"the output folder {out} is a file: the report writes a folder of "
-                         f"files")
     try:                                    # made and written to before the simulation
         out.mkdir(parents=True, exist_ok=True)
         probe = out / f".probe{os.getpid()}"
@@ -244,6 +244,26 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
     _write(out, result)
     _plots(rows, sweep, contention, detail, out, meta.get("scene", ""))
     return result
+
+
+def check_out_folder(out, name: str):
+    """A ValueError naming ``name`` where the folder ``out`` cannot be made or written (an
+    empty name, a file on its way, a folder above it that cannot be written); nothing is
+    made here (the report makes it once its inputs are read)."""
+    if not str(out).strip():
+        raise ValueError(f"{name} needs a folder, got {str(out)!r}")
+    path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{name} {str(out)!r} is a file: the report writes a folder of files")
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"{name} {str(out)!r} cannot be made: {str(existing)!r} is a file, "
+                         f"not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"{name} {str(out)!r} cannot be made or written: {str(existing)!r} "
+                         f"is not writable")
 
 
 def _per_n(config, loads):

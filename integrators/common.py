@@ -658,9 +658,9 @@ class PhotonMapper(mi.SamplingIntegrator):
                     f"{term.name}_mean_final_radius"
                 self.stats[key] = float(dr.mean(dr.sqrt(term.state.r2))[0])
         done = self.stats.get("passes", 0)
-        if "mean_final_radius" not in self.stats and done > 1 and \
-                self.scheduled_radius(done) is not None:
-            self.stats["mean_final_radius"] = self.scheduled_radius(done)
+        scheduled = self.scheduled_radius(done) if done > 1 else None
+        if "mean_final_radius" not in self.stats and scheduled is not None:
+            self.stats["mean_final_radius"] = scheduled
 
     def _after_pass(self, pass_index: int, terms, start: float, image) -> bool:
         """Progress after a pass (``on_pass`` receives it, with ``image()`` to develop the
@@ -683,9 +683,6 @@ class PhotonMapper(mi.SamplingIntegrator):
         asked = self._cancelled or \
             (self.stop_requested is not None and bool(self.stop_requested()))
         ended = self.cannot_run_pass(done) if done < self.passes else None
-        if ended and not (timed_out or asked):
-            log.warning("pass %d: %s, so the render ends here, before its time limit", done,
-                        ended)
         stop = (timed_out or asked or ended is not None) and done < self.passes
         if self.passes > 1:
             # Every process of the render stops after the same pass (the first whose clock
@@ -697,7 +694,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         if info["last"]:
             info["eta"] = 0.0
         if stop:
-            self._stopped_by(timed_out, asked, ended is not None)
+            self._stopped_by(timed_out, asked, ended, done)
         if self.passes > 1:
             radius = "" if info["mean_radius"] is None else \
                 f", mean radius {info['mean_radius']:.4g}"
@@ -724,12 +721,16 @@ class PhotonMapper(mi.SamplingIntegrator):
                 log.info("pass %d: stopped as asked", done)
         return stop
 
-    def _stopped_by(self, timed_out: bool, asked: bool, ended: bool = False):
+    def _stopped_by(self, timed_out: bool, asked: bool, ended=None, done: int = 0):
         """Why the render has fewer passes than it was given, in its stats: its time limit,
-        a request (Ctrl-C, cancel()), a next pass that cannot run (:meth:`cannot_run_pass`)
-        or another process of the render that stopped."""
+        a request (Ctrl-C, cancel()), a next pass that cannot run (``ended``, why, from
+        :meth:`cannot_run_pass`, which is said after pass ``done``) or another process of
+        the render that stopped."""
         self.stats["stopped_by"] = "time_limit" if timed_out else \
             "request" if asked else "radius" if ended else "another_process"
+        if self.stats["stopped_by"] == "radius":
+            log.warning("pass %d: %s, so the render ends here, before its time limit", done,
+                        ended)
 
     def none_found_text(self, term: str) -> tuple:
         """Where the ``term`` estimate searches, and why it may find nothing there."""
@@ -805,10 +806,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                 else None
             if timed_out or asked or ended:
                 if pass_index + 1 < self.passes:
-                    if ended and not (timed_out or asked):
-                        log.warning("pass %d: %s, so the render ends here, before its time "
-                                    "limit", pass_index + 1, ended)
-                    self._stopped_by(timed_out, asked, bool(ended))
+                    self._stopped_by(timed_out, asked, ended, pass_index + 1)
                 break
         self._finish(terms)
         return eye.emitted + _radiance(terms), eye.valid, []

@@ -340,12 +340,14 @@ class PartPMIntegrator(PhotonMapper):
         """A final gather's radius follows a schedule: with passes until a time limit, a
         small ``alpha`` can take it below the least radius before the limit (a given number
         of passes is checked before the first, in :meth:`terms`)."""
-        if self.final_gather and pass_index and \
-                radius_schedule(self.radius, self.alpha, pass_index) < MIN_RADIUS:
-            return (f"alpha = {self.alpha:g} would shrink the final gather's radius "
-                    f"{self.radius:g} to {radius_schedule(self.radius, self.alpha, pass_index):.3g}"
-                    f" in pass {pass_index + 1}, {below_min_radius()}")
-        return None
+        if not (self.final_gather and pass_index):
+            return None
+        radius = radius_schedule(self.radius, self.alpha, pass_index)
+        if radius >= MIN_RADIUS:
+            return None
+        return (f"alpha = {self.alpha:g} would shrink the final gather's radius "
+                f"{self.radius:g} to {radius:.3g} in pass {pass_index + 1}, "
+                f"{below_min_radius()}")
 
     def _points_term(self, name: str, layer, width: int, radius) -> Term:
         state = SPPMState.start(width, radius, self.alpha)

@@ -66,23 +66,23 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
     start, said, j = time.perf_counter(), 0, 0
     while j < samples:
         rays = min(batch, samples - j)
-        # Lane l: ray j + l // count of point l % count (its stream, as one ray at a time).
+        # Lane l: ray j + l // count of point l % count (one ray at a time, the points
+        # themselves, not copies).
         lane = dr.arange(mi.UInt32, count * rays)
-        point = lane % dr.opaque(mi.UInt32, count) if rays > 1 else lane
-        ray_index = mi.UInt64(lane // dr.opaque(mi.UInt32, count)) + dr.opaque(mi.UInt64, j) \
-            if rays > 1 else dr.opaque(mi.UInt64, j)
-        # The stream of (point, ray): PCG32's constructor adds the lane to both seeds, so
-        # they are given here with the point's index added instead (one ray at a time, the
-        # lane is the point), whatever the batch.
-        rng = mi.PCG32(count * rays)
-        rng.seed(dr.opaque(mi.UInt64, seed & 0xFFFFFFFFFFFFFFFF) + mi.UInt64(point),
-                 mi.UInt64(point) * (n_samples + 1) + ray_index)
         if rays > 1:
+            point = lane % dr.opaque(mi.UInt32, count)
+            ray_index = mi.UInt64(lane // dr.opaque(mi.UInt32, count)) + dr.opaque(mi.UInt64, j)
             si = dr.gather(type(points.si), points.si, point)
             bsdf = dr.gather(mi.BSDFPtr, points.bsdf, point)
             max_bounce = dr.gather(mi.UInt32, points.max_bounce, point)
         else:
+            point, ray_index = lane, dr.opaque(mi.UInt64, j)
             si, bsdf, max_bounce = points.si, points.bsdf, points.max_bounce
+        # The stream of (point, ray): PCG32's constructor adds the lane to both seeds, so
+        # they are given here with the point's index added instead, whatever the batch.
+        rng = mi.PCG32(count * rays)
+        rng.seed(dr.opaque(mi.UInt64, seed & 0xFFFFFFFFFFFFFFFF) + mi.UInt64(point),
+                 mi.UInt64(point) * (n_samples + 1) + ray_index)
         bs, weight = bsdf.sample(ctx, si, rng.next_float32(),
                                  mi.Point2f(rng.next_float32(), rng.next_float32()))
         # Only the non-delta lobes: the delta ones are the eye path's own continuation.

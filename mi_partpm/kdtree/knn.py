@@ -19,11 +19,11 @@ import mitsuba as mi
 import numpy as np
 
 from .forest import Forest, as_points
-from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, check_forest, check_order,
-                     check_per_query, check_queries, coordinate, group_balls, group_lanes,
-                     leaf_reached, leaf_run, order_queries, permute, photon_payload,
-                     photon_position, radius_indices, radius_query, result_type_errors, split_of,
-                     tree_row, typed_contribution, check_callable, checked_callback, unpermute,
+from .radius import (GROUP_MARGIN, WALKS, QueryStats, _walk, check_callable, check_forest,
+                     check_order, check_per_query, check_queries, checked_callback, coordinate,
+                     group_balls, group_lanes, leaf_reached, leaf_run, order_queries, permute,
+                     photon_payload, photon_position, radius_indices, radius_query,
+                     result_type_errors, split_of, tree_row, typed_contribution, unpermute,
                      walk_start)
 
 __all__ = ["knn_query", "KnnResult", "knn_neighbours", "radius_neighbours", "KNN_KEEP",

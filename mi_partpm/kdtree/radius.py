@@ -523,7 +523,6 @@ def radius_indices(forest: Forest, p, r, lengths, maps=None) -> np.ndarray:
     return found.astype(np.int64)
 
 
-
 def check_callable(f, name: str):
     """A :class:`CallbackError` naming ``name`` unless ``f`` can be called (a callback)."""
     if not callable(f):
