@@ -374,6 +374,12 @@ def test_scaling_command_small(tmp_path, capsys):
                  "16000x16000", "--spp", "64", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "lower --spp or --resolution" in err and "mpiexec" not in err
+    # A variant the plugins do not run on is refused before mpiexec starts, as render's
+    # --variant is (its ranks said so, one after the other).
+    assert main(["scaling", "cornell_box", "--ranks", "1,2", "--maps", "4", "--variant",
+                 "scalar_rgb", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "needs a JIT RGB or mono Mitsuba variant" in err and "mpiexec" not in err
 
 
 def test_the_reduction_benchmark_reduces_arrays_of_the_variant_it_is_given(tmp_path):

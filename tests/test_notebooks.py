@@ -168,3 +168,17 @@ def test_a_finished_run_is_reused_only_by_the_code_that_made_it(tmp_path, monkey
         assert runs.count(kind) == before + 2, said
         assert said[-1].endswith("was made from other scene files (or records none): running "
                                  "again"), said[-1]
+
+
+def test_a_bad_notebook_setting_is_named_before_any_work(tmp_path, monkeypatch):
+    """A file as PARTPM_NOTEBOOK_OUT is refused by name (it gave mkdir's NotADirectoryError),
+    and photons < 1 in the speedup settings by name (it gave a message about the lcm of the
+    map counts)."""
+    from mi_partpm.experiments import notebook
+    from mi_partpm.experiments.speedup import check_speedup
+    (tmp_path / "f").write_text("")
+    monkeypatch.setenv("PARTPM_NOTEBOOK_OUT", str(tmp_path / "f"))
+    with pytest.raises(ValueError, match="PARTPM_NOTEBOOK_OUT must name a folder"):
+        notebook.out_dir("speedup_cornell_box")
+    with pytest.raises(ValueError, match="photons must be an integer >= 1, got -5"):
+        check_speedup([1, 2, 4], -5)

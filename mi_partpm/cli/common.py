@@ -13,8 +13,8 @@ from ..props import check_float, check_int
 __all__ = ["UsageError", "parse_resolution", "positive_int", "seed_int", "positive_float",
            "radius_float", "int_list", "scene_parameter", "scene_parameters", "setup",
            "progress", "last_line", "interrupted", "write_atomic", "check_writable",
-           "check_folder", "check_scene_name", "check_variant_name", "check_eye_pass",
-           "user_errors", "MAX_PIXELS", "MADE_FOLDERS", "remove_made_folders"]
+           "check_folder", "check_scene_name", "check_variant_name", "check_plugin_variant",
+           "check_eye_pass", "user_errors", "MAX_PIXELS", "MADE_FOLDERS", "remove_made_folders"]
 
 #: The most pixels a film may have: Mitsuba indexes a film's values (4 or 5 a pixel) with
 #: 32-bit integers (60000 x 60000 failed inside Mitsuba's tensor).
@@ -144,17 +144,24 @@ def check_variant_name(variant: str):
                          f"{', '.join(mi.variants())}")
 
 
+def check_plugin_variant(variant: str):
+    """Refuse a ``--variant`` this Mitsuba lacks or the plugins do not run on."""
+    from .. import plugins
+    check_variant_name(variant)
+    try:
+        plugins.check_variant(variant, hint="--variant llvm_ad_rgb")
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+
 def setup(args, needs_plugins=True) -> bool:
     """Choose the variant, import the plugins, answer --list, check SCENE. True: go on."""
     import mitsuba as mi
 
-    from .. import plugins
-    check_variant_name(args.variant)
     if needs_plugins:
-        try:
-            plugins.check_variant(args.variant, hint="--variant llvm_ad_rgb")
-        except ValueError as e:
-            raise UsageError(str(e)) from None
+        check_plugin_variant(args.variant)
+    else:
+        check_variant_name(args.variant)
     try:
         mi.set_variant(args.variant)
     except (ImportError, RuntimeError) as e:   # e.g. a CUDA variant without a CUDA device

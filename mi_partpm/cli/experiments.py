@@ -11,8 +11,8 @@ import re
 from pathlib import Path
 
 from ..trace import MAX_RUN
-from .common import (UsageError, check_eye_pass, check_folder, check_scene_name,
-                     check_variant_name, check_writable, int_list, last_line, progress, setup,
+from .common import (UsageError, check_eye_pass, check_folder, check_plugin_variant,
+                     check_scene_name, check_writable, int_list, last_line, progress, setup,
                      user_errors)
 
 __all__ = ["run_compare", "run_speedup", "run_bench", "run_hwsim", "run_scaling",
@@ -189,7 +189,7 @@ def run_calibrate(args) -> int:
 
 def run_scaling(args) -> int:
     from ..experiments.scaling import format_scaling, run_scaling
-    check_variant_name(args.variant)                 # before any rank starts
+    check_plugin_variant(args.variant)               # before any rank starts
     ranks = int_list("--ranks", args.ranks)
     if args.hostfile and not Path(args.hostfile).is_file():
         raise UsageError(f"--hostfile {args.hostfile!r} is not a file")

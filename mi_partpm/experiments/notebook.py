@@ -54,6 +54,9 @@ def out_dir(name: str) -> Path:
     """Where the run ``name`` lives: ``$PARTPM_NOTEBOOK_OUT/name`` (``smoke/name`` at the smoke
     size, so that a smoke run never replaces a paper-size one)."""
     base = Path(os.environ.get("PARTPM_NOTEBOOK_OUT", "../out"))
+    if base.exists() and not base.is_dir():
+        raise ValueError(f"PARTPM_NOTEBOOK_OUT must name a folder (relative paths from the "
+                         f"notebook's folder), but {base} is a file")
     return base / name if size() == "paper" else base / "smoke" / name
 
 

@@ -141,6 +141,8 @@ def check_maps(maps_list, photons, repeats=1):
     if twice:
         raise ValueError(f"--maps lists {', '.join(map(str, twice))} more than once: give each "
                          f"map count once")
+    if int(photons) < 1:
+        raise ValueError(f"photons must be an integer >= 1, got {photons}")
     lcm = math.lcm(*maps_list)
     if lcm > photons:
         raise ValueError(f"the maps {maps_list} need lcm = {lcm} photon streams but only "
