@@ -182,3 +182,7 @@ def test_a_bad_notebook_setting_is_named_before_any_work(tmp_path, monkeypatch):
         notebook.out_dir("speedup_cornell_box")
     with pytest.raises(ValueError, match="photons must be an integer >= 1, got -5"):
         check_speedup([1, 2, 4], -5)
+    # hwsim's report on workloads never recorded says which call records them.
+    monkeypatch.setenv("PARTPM_NOTEBOOK_OUT", str(tmp_path))
+    with pytest.raises(FileNotFoundError, match=r"run speedup\('glossy_spheres'\) first"):
+        notebook.hwsim_report("glossy_spheres")

@@ -146,6 +146,10 @@ def hwsim_report(scene: str, config=None, check_scene: str | None = None) -> dic
     workloads = out_dir(f"speedup_{scene_dir_name(scene)}") / "workloads"
     check = out_dir(f"speedup_{scene_dir_name(check_scene)}") / "workloads" \
         if check_scene else None
+    for name, folder in ((scene, workloads), (check_scene, check)):
+        if folder is not None and not (folder / "meta.json").is_file():
+            raise FileNotFoundError(f"no workloads of {name} in {folder.parent}: run "
+                                    f"speedup({name!r}) first")
     out = out_dir(f"hwsim_{scene_dir_name(scene)}")
     result = run_report(workloads, config or HardwareConfig(), out, check, code=code_version())
     result["out"] = str(out)
