@@ -391,7 +391,20 @@ def test_cli_renders_a_scene_file_with_its_own_integrator(tmp_path, capsys, capl
         assert main(["render", str(pm), "--photons", "2000", "--resolution", "8x8", "-q",
                      "-o", str(tmp_path / "p.exr")]) == 0
     assert f'the command line\'s partpm (--photons) replaces the <integrator type="pm"> of ' \
-        f'{pm} (add --integrator pm to render the file\'s with these options)' in caplog.text
+        f'{pm} with its own props (without these options the file\'s renders); add ' \
+        f'--integrator pm to render pm with these options' in caplog.text
+    # Of a file's path (or aov, moment), the hint named --integrator path (which refuses
+    # --photons) or aov (not a choice of --integrator): it names nothing to add.
+    path = tmp_path / "path.xml"
+    path.write_text(pm.read_text().replace('<integrator type="pm">',
+                                           '<integrator type="path">').replace(
+        '<integer name="photon_count" value="3000"/>', ""))
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        assert main(["render", str(path), "--photons", "2000", "--resolution", "8x8", "-q",
+                     "-o", str(tmp_path / "p.exr")]) == 0
+    assert 'replaces the <integrator type="path">' in caplog.text
+    assert "add --integrator" not in caplog.text
 
 
 def test_the_final_radius_is_reported_after_passes_only():

@@ -217,10 +217,13 @@ def run_render(args) -> int:
     given = _given_options(args)
     from_file = args.scene is not None and scene_file_integrator(args.scene)
     if from_file and given:
-        log.warning("the command line's %s (%s) replaces the <integrator type=\"%s\"> of %s%s",
+        # Only pm takes the photon mappers' options besides partpm: for another integrator
+        # (path, aov, moment) no --integrator renders it with them.
+        log.warning("the command line's %s (%s) replaces the <integrator type=\"%s\"> of %s "
+                    "with its own props (without these options the file's renders)%s",
                     args.integrator or "partpm", ", ".join(given), from_file, args.scene,
-                    "" if args.integrator or from_file == "partpm" else
-                    f" (add --integrator {from_file} to render the file's with these options)")
+                    "; add --integrator pm to render pm with these options"
+                    if args.integrator is None and from_file == "pm" else "")
     integrator = None
     if not from_file or given:
         named = args.integrator is not None
