@@ -18,8 +18,8 @@ from mi_partpm.progressive import (RadianceSum, SPPMState, accumulate, check_fir
                                    check_schedule, radius_schedule)
 from mi_partpm.trace import stream_seed
 from mi_partpm.props import (MAX_RADIUS, PROGRESSIVE_RADIUS_FRACTION, RADIUS_FRACTION,
-                             MAX_RAYS_PER_POINT, UNLIMITED_DEPTH, check_choice, read_choice,
-                             read_float, read_int)
+                             MAX_RAYS_PER_POINT, PM_ONLY, UNLIMITED_DEPTH, check_choice,
+                             read_choice, read_float, read_int, refuse_props)
 
 log = logging.getLogger("mi_partpm")
 
@@ -195,6 +195,8 @@ class PartPMIntegrator(PhotonMapper):
     """
 
     def read_estimator_props(self, props):
+        refuse_props(props, PM_ONLY, "pm", "partpm searches every eye path's photons within "
+                     "a radius (radius or radius_fraction), not its k nearest")
         n = self.params.photon_count
         high = min(n, MAX_MAPS)
         self.map_count = read_int(props, "map_count", 1, low=1, high=high,

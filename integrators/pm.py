@@ -12,15 +12,11 @@ from mi_partpm.eyepath import estimated_lobes
 from mi_partpm.integrators.common import PhotonMapper, Term
 from mi_partpm.progressive import RadianceSum, accumulate
 from mi_partpm.kdtree.radius import MIN_RADIUS
-from mi_partpm.props import MAX_RADIUS, read_bool, read_float, read_int
+from mi_partpm.props import (MAX_RADIUS, PARTPM_ONLY, read_bool, read_float, read_int,
+                             refuse_props)
 
 log = logging.getLogger("mi_partpm")
 
-
-#: partpm's props, which pm refuses by name.
-PARTPM_ONLY = ("radius", "radius_fraction", "map_count", "passes", "alpha", "time_limit",
-               "caustic_photon_count", "caustic_radius", "caustic_radius_fraction",
-               "final_gather", "maps_per_wave", "backend")
 
 
 class PMIntegrator(PhotonMapper):
@@ -75,14 +71,9 @@ class PMIntegrator(PhotonMapper):
     progressive = False
 
     def read_estimator_props(self, props):
-        # partpm's own props: named here (Mitsuba's message said only "unreferenced property
-        # in unknown plugin").
-        given = [name for name in PARTPM_ONLY if props is not None and name in props]
-        if given:
-            raise ValueError(f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to "
-                             f"partpm only: pm is the single-pass k-nearest-neighbour "
-                             f"photon mapper of one map (its radius is the k-th photon's; "
-                             f"max_radius caps it)")
+        refuse_props(props, PARTPM_ONLY, "partpm", "pm is the single-pass k-nearest-neighbour "
+                     "photon mapper of one map (its radius is the k-th photon's; max_radius "
+                     "caps it)")
         n = self.params.photon_count
         # k = 1: pi r^2 then holds no photon on average, and the estimate's mean is unbounded.
         self.k = read_int(props, "k", 50, low=2, high=min(n, MAX_K),

@@ -20,7 +20,7 @@ __all__ = ["PhotonMapParams", "check_int", "check_float", "check_bool", "check_c
            "read_int", "read_float", "read_bool", "read_choice", "read_photon_map_params",
            "DIRECT_MODES", "UNLIMITED_DEPTH", "segment_limit", "RADIUS_FRACTION",
            "PROGRESSIVE_RADIUS_FRACTION", "MAX_RADIUS", "KERNEL_NAMES", "GLOSSY_MODES",
-           "MAX_RAYS_PER_POINT"]
+           "MAX_RAYS_PER_POINT", "PARTPM_ONLY", "PM_ONLY", "refuse_props"]
 
 #: ``max_depth`` of -1: no limit (Russian roulette ends the paths), as in Mitsuba.
 UNLIMITED_DEPTH = -1
@@ -142,6 +142,24 @@ def read_bool(props, name: str, default: bool) -> bool:
 
 def read_choice(props, name: str, default: str, choices) -> str:
     return check_choice(name, _get(props, name, default), choices)
+
+
+#: partpm's props, which pm refuses by name.
+PARTPM_ONLY = ("radius", "radius_fraction", "map_count", "passes", "alpha", "time_limit",
+               "caustic_photon_count", "caustic_radius", "caustic_radius_fraction",
+               "final_gather", "maps_per_wave", "backend")
+#: pm's props, which partpm refuses by name.
+PM_ONLY = ("k", "count_kth", "max_radius")
+
+
+def refuse_props(props, names, owner: str, why: str):
+    """A ValueError naming the props of ``names`` given in ``props``, which apply to the
+    integrator ``owner`` only (Mitsuba's own message says "unreferenced property in unknown
+    plugin"), with ``why``."""
+    given = [name for name in names if props is not None and name in props]
+    if given:
+        raise ValueError(f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to "
+                         f"{owner} only: {why}")
 
 
 @dataclass

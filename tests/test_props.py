@@ -71,6 +71,10 @@ from mi_partpm.trace import map_seeds, map_sizes
     ({"final_gather": 4}, r"final_gather = 4 needs direct = 'nee'"),
     ({"caustic_radius": 0.1}, r"caustic_radius and caustic_radius_fraction .* need caustic "
                               r"maps \(caustic_photon_count > 0\)"),
+    # pm's props, named (Mitsuba's message said "unreferenced property in unknown plugin").
+    ({"k": 10}, r"k applies to pm only: partpm searches every eye path's photons within a "
+                r"radius"),
+    ({"k": 10, "max_radius": 0.1}, r"k, max_radius apply to pm only"),
 ])
 def test_bad_props_raise_clear_errors(props, message):
     with pytest.raises(Exception, match=message):
