@@ -130,7 +130,8 @@ def _render_options(sub):
                    help="search radius in world units (partpm), in [1e-15, 1e18] (default: "
                         "--radius-fraction of the scene)")
     g.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
-                   help="radius as a fraction of the scene's longest side (default 0.05; "
+                   help="radius as a fraction of the scene's longest side, in (0, 1] "
+                        "(default 0.05; "
                         "0.025 for a progressive render: --passes > 1, or --time without "
                         "--passes)")
     r.add_argument("--max-radius", type=radius_float("--max-radius"),
@@ -180,8 +181,8 @@ def _quality_options(r):
                         "a quarter of the global radius)")
     g.add_argument("--caustic-radius-fraction",
                    type=positive_float("--caustic-radius-fraction", 1.0),
-                   help="the caustic maps' radius over the scene's longest side (default: a "
-                        "quarter of the global radius)")
+                   help="the caustic maps' radius over the scene's longest side, in (0, 1] "
+                        "(default: a quarter of the global radius)")
     r.add_argument("--glossy", choices=GLOSSY_MODES,
                    help="at glossy surfaces: estimate from the map there (default), or trace "
                         "on by BSDF sampling")
