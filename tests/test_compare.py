@@ -1,5 +1,7 @@
 """The conventional photon mapper pm, the comparison pm / partpm / path, metrics, pictures."""
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -195,6 +197,23 @@ def test_pm_warns_when_k_reaches_the_photons_stored(caplog):
 def test_pm_bad_props_raise_clear_errors(props, message):
     with pytest.raises(Exception, match=message):
         mi.load_dict({"type": "pm", **props})
+
+
+def test_pm_renders_at_the_largest_k():
+    """pm at k = MAX_K over a wavefront that Dr.Jit spreads over its threads: the grouped
+    walk's local arrays (KNN_KEEP x k candidates and the k nearest, per lane of a packet)
+    took 10.5 MB of a thread's 8 MB stack and the process ended with a segfault (so it runs
+    in a process of its own). A cap of 1e-3 keeps the walks short; the arrays are as large."""
+    code = ("import mitsuba as mi, numpy as np; mi.set_variant('llvm_ad_rgb'); import mi_partpm; "
+            "from mi_partpm.kdtree.knn import MAX_K; "
+            "scene = mi_partpm.load_scene('cornell_box', resolution=(128, 128), spp=1); "
+            "img = mi.render(scene, integrator=mi.load_dict({'type': 'pm', 'photon_count': "
+            "MAX_K, 'k': MAX_K, 'max_radius': 1e-3})); "
+            "print('mean', float(np.mean(np.array(img))))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, (done.returncode, done.stderr[-2000:])
+    assert "mean" in done.stdout
 
 
 def test_pm_from_xml_and_cli(tmp_path, capsys):

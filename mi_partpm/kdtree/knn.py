@@ -35,6 +35,19 @@ KNN_KEEP = 4
 #: The largest k: Dr.Jit's local arrays hold fewer than 65536 entries (65536 is refused), and
 #: a grouped walk keeps up to KNN_KEEP x k candidates per query.
 MAX_K = 65536 // KNN_KEEP - 1
+#: Bytes of the grouped walk's local arrays per lane, at most: on the LLVM backend they live
+#: on the stack of the thread that runs the kernel, for every lane of a packet (16 on
+#: AVX-512), and a thread's stack is 8 MB by default on Linux. With KNN_KEEP x k kept
+#: candidates and the k nearest (40 bytes per k and lane), pm's kernel at k = 14,000 (9 MB)
+#: ended the process with a segfault; this bound (4 MB for 16 lanes) keeps fewer candidates
+#: for k above 6,553, and a lane that finds more walks again on its own.
+LOCAL_BYTES = 1 << 18
+
+
+def kept_candidates(k: int) -> int:
+    """Candidates a lane of the grouped walk keeps for ``k`` neighbours: KNN_KEEP x k, fewer
+    where the k nearest and they would exceed :data:`LOCAL_BYTES` (never fewer than k)."""
+    return max(k, min(KNN_KEEP * k, LOCAL_BYTES // 8 - k))
 
 #: A member's ball in the grouped walk: a leader's k-th distance plus this share of the way
 #: to it. With 1 (and an accept test the same for every lane) the ball surely holds k
@@ -509,7 +522,7 @@ def _knn_grouped(forest, p, k, contribution, result_type, r2max, active, walk, n
     ball = group_balls(p, dr.sqrt(walk2) * GROUP_MARGIN, grouped, width)
 
     # The walk of the bound, in groups, keeping the photons inside; the selection.
-    keep = KNN_KEEP * k
+    keep = kept_candidates(k)
     kept_d = dr.alloc_local(mi.Float, keep)
     kept_i = dr.alloc_local(mi.UInt32, keep)
     _, walked = _walk(forest, p, walk2, ball, None, mi.Float, grouped, walk, True, accept,
