@@ -351,15 +351,27 @@ class PhotonMapper(mi.SamplingIntegrator):
         width, height, samples = self._eye_size(scene, sensor, spp)
         emitted = int(self._emitted_per_map()[maps].sum())
         depth, share = self._photon_depth(), self._batch_share()
+        # A wave of several maps is held to a wave's budget too, as its plan was: where its
+        # paths store more than planned it is planned again (a closed white room stored 24
+        # photons per photon emitted, planned as 3, and took 3 GB in one wave).
+        budget = memory.wave_budget(memory.eye_bytes(width, height, samples),
+                                    self.wave_bytes) \
+            if len(maps) > 1 and self.maps_per_wave == 0 else None
 
         def check_during(ratio, done):
             # What this wave measured so far: a wave planned again plans with it.
             self._stored_per_emitted[layer.name] = ratio
+            measured = self._stored_ratio(maps)
             estimate = memory.estimate_render(emitted, depth, width, height, samples,
-                                              self._stored_ratio(maps), batch_share=share)
+                                              measured, batch_share=share)
             memory.check_fits(estimate, f"{self._photons_text()} (projected from the first "
                                         f"{done:,} photons traced)",
                               option=self._photons_option(), asked=self._photons_asked())
+            need = memory.wave_bytes(emitted, depth, measured, share)
+            if budget is not None and need > budget:
+                raise memory.WaveOverBudget(
+                    f"the wave of {len(maps)} maps needs about {memory.size_text(need)}, "
+                    f"more than a wave's {memory.size_text(budget)}")
         return check_during
 
     def _add_stats(self, **values):

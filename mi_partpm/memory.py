@@ -21,10 +21,11 @@ import sys
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
-__all__ = ["available_bytes", "share_memory", "peak_rss_bytes", "MemoryEstimate", "estimate_render",
-           "check_fits", "assumed_stored_per_emitted", "plan_waves", "wave_budget",
-           "MemoryGuardError", "TRACE_BATCH", "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES",
-           "EYE_BYTES_PER_SAMPLE", "ASSUMED_STORED_PER_EMITTED",
+__all__ = ["available_bytes", "share_memory", "peak_rss_bytes", "MemoryEstimate",
+           "estimate_render", "check_fits", "assumed_stored_per_emitted", "plan_waves",
+           "wave_budget", "MemoryGuardError", "WaveOverBudget", "TRACE_BATCH",
+           "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES", "BATCH_BYTES_PER_STORED",
+           "batch_bytes_per_path", "EYE_BYTES_PER_SAMPLE", "ASSUMED_STORED_PER_EMITTED",
            "ASSUMED_CAUSTIC_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES", "MORE_MAPS", "LOWER_DEPTH",
            "FOREST_BYTES_PER_STORED"]
 
@@ -37,6 +38,11 @@ TRACE_BATCH = 1 << 20
 #: when a pilot batch's photons were joined to the full batch's, 198 without that joining
 #: (the pilot's photons are now traced again instead, so the estimate keeps the margin).
 TRACE_BATCH_BYTES = 300 * TRACE_BATCH
+#: The same per stored photon, where paths store more (the slots and their copies grow with
+#: them): measured 73 bytes (the Cornell box, 2.98 stored per path) and 110 (a closed room
+#: of reflectance 0.99 lit by a point light, 24 per path; 2,649 bytes per path against the
+#: 300 above) beyond the photons returned, Dr.Jit's peak over one batch.
+BATCH_BYTES_PER_STORED = 110
 #: Peak bytes per stored photon of a wave while it is traced, built and queried: the photons
 #: as traced (position, direction, power, map, bounce), the tree build's sort orders and
 #: partition temporaries, the maps in tree order, and Dr.Jit's rounding of every allocation
@@ -68,6 +74,12 @@ FOREST_BYTES_PER_STORED = 44
 
 class MemoryGuardError(MemoryError):
     """The render would need more memory than is free; the message says which prop to lower."""
+
+
+class WaveOverBudget(MemoryGuardError):
+    """A wave of several maps, while it is traced, turns out to store more photons than
+    its plan assumed and to need more than a wave may take (:func:`wave_budget`): it is
+    planned again in smaller waves (never raised for a wave of one map)."""
 
 
 def _proc_bytes(path: str, key: str) -> Optional[int]:
@@ -191,7 +203,16 @@ def wave_bytes(emitted: float, max_depth: int, stored_per_emitted=None,
     ``batch_share`` is traced at once (the largest layer's: the global and the caustic maps
     are traced one after the other)."""
     return int(stored_photons(emitted, max_depth, stored_per_emitted) * WAVE_BYTES_PER_STORED
-               + min(emitted * batch_share, TRACE_BATCH) / TRACE_BATCH * TRACE_BATCH_BYTES)
+               + min(emitted * batch_share, TRACE_BATCH)
+               * batch_bytes_per_path(max_depth, stored_per_emitted))
+
+
+def batch_bytes_per_path(max_depth: int, stored_per_emitted=None) -> float:
+    """Bytes per path of a trace batch beyond the photons it returns:
+    :data:`TRACE_BATCH_BYTES` per path, or :data:`BATCH_BYTES_PER_STORED` per photon it
+    stores where that is more."""
+    return max(TRACE_BATCH_BYTES / TRACE_BATCH,
+               BATCH_BYTES_PER_STORED * stored_photons(1.0, max_depth, stored_per_emitted))
 
 
 def eye_bytes(width: int, height: int, spp: int) -> int:
