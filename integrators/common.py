@@ -309,17 +309,24 @@ class PhotonMapper(mi.SamplingIntegrator):
         sizes = self._emitted_per_map()[owned]
         depth, ratio = self._photon_depth(), self._stored_ratio(owned)
         width, height, samples = self._eye_size(scene, sensor, spp)
-        budget = memory.wave_budget(memory.eye_bytes(width, height, samples), self.wave_bytes)
+        kept = self._eye_kept()
+        budget = memory.wave_budget(memory.eye_bytes(width, height, samples, kept),
+                                    self.wave_bytes)
         share = self._batch_share()
         waves = memory.plan_waves(sizes, depth, budget, ratio, self.maps_per_wave, share)
         estimate = memory.estimate_render(int(sizes.sum()), depth, width, height, samples,
-                                          ratio, waves, sizes, share)
+                                          ratio, waves, sizes, share, kept)
         what = self._photons_text()
         if maps is None and len(owned) < self.map_count:      # an MPI rank's share
             what += f" (this process's {len(owned)} of the {self.map_count} maps)"
         memory.check_fits(estimate, what, option=self._photons_option(),
                           asked=self._photons_asked())
         return [[int(owned[i]) for i in wave] for wave in waves]
+
+    def _eye_kept(self) -> bool:
+        """Whether the eye paths keep their state between passes or gather (more bytes per
+        sample for the memory guard)."""
+        return self.passes > 1 or bool(getattr(self, "final_gather", 0))
 
     def _batch_share(self) -> float:
         """The share of a wave's photons traced at once: the largest layer's (the layers
@@ -354,7 +361,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         # A wave of several maps is held to a wave's budget too, as its plan was: where its
         # paths store more than planned it is planned again (a closed white room stored 24
         # photons per photon emitted, planned as 3, and took 3 GB in one wave).
-        budget = memory.wave_budget(memory.eye_bytes(width, height, samples),
+        kept = self._eye_kept()
+        budget = memory.wave_budget(memory.eye_bytes(width, height, samples, kept),
                                     self.wave_bytes) \
             if len(maps) > 1 and self.maps_per_wave == 0 else None
 
@@ -363,7 +371,7 @@ class PhotonMapper(mi.SamplingIntegrator):
             self._stored_per_emitted[layer.name] = ratio
             measured = self._stored_ratio(maps)
             estimate = memory.estimate_render(emitted, depth, width, height, samples,
-                                              measured, batch_share=share)
+                                              measured, batch_share=share, kept=kept)
             memory.check_fits(estimate, f"{self._photons_text()} (projected from the first "
                                         f"{done:,} photons traced)",
                               option=self._photons_option(), asked=self._photons_asked())

@@ -25,7 +25,7 @@ __all__ = ["available_bytes", "share_memory", "peak_rss_bytes", "MemoryEstimate"
            "estimate_render", "check_fits", "assumed_stored_per_emitted", "plan_waves",
            "wave_budget", "MemoryGuardError", "WaveOverBudget", "TRACE_BATCH",
            "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES", "BATCH_BYTES_PER_STORED",
-           "batch_bytes_per_path", "EYE_BYTES_PER_SAMPLE", "ASSUMED_STORED_PER_EMITTED",
+           "batch_bytes_per_path", "EYE_BYTES_PER_SAMPLE", "EYE_BYTES_PER_SAMPLE_KEPT", "ASSUMED_STORED_PER_EMITTED",
            "ASSUMED_CAUSTIC_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES", "MORE_MAPS", "LOWER_DEPTH",
            "FOREST_BYTES_PER_STORED"]
 
@@ -49,10 +49,16 @@ BATCH_BYTES_PER_STORED = 110
 #: to a power of two. Measured: 131 bytes (Dr.Jit's peak over the stored photons of one wave
 #: of 3 x 10^7 in the Cornell box); 150 leaves room for scenes that store more per path.
 WAVE_BYTES_PER_STORED = 150
-#: Eye pass bytes per sample (ray, throughput, sampler, the visible points, the terms' per-path
-#: sums and the film). Measured at 480 x 480 x 16: 100 (Cornell box) to 258 (glossy spheres
-#: traced on by BSDF sampling, with emitter sampling) bytes per sample.
-EYE_BYTES_PER_SAMPLE = 280
+#: Eye pass bytes per sample of a single-pass render (ray, throughput, sampler, the visible
+#: points, the terms' per-path sums and the film). Measured (Dr.Jit's peak over a render of
+#: 10^4 photons in 8 maps, per sample): 452 (Cornell box, 480 x 480 x 4), 432 (480 x 480 x
+#: 16), 384 (1024 x 1024 x 4), 456 with emitter sampling, 508 with glossy surfaces traced on,
+#: 514 in glossy_spheres traced on with emitter sampling, 285 in glossy_spheres.
+EYE_BYTES_PER_SAMPLE = 520
+#: The same where every eye path keeps its state between passes (progressive) or gathers
+#: (final gathering): measured 669 (Cornell box, 2 passes), 701 (final gather of 1 ray),
+#: 737 (caustic_glass, 2 passes, caustic maps), 480 x 480 x 4.
+EYE_BYTES_PER_SAMPLE_KEPT = 760
 #: Photons stored per emitted photon assumed before tracing, when max_depth does not bound it
 #: lower (measured: 2.9-3.0 in the Cornell box, 3.4 in glossy_spheres, 4.0 in caustic_glass,
 #: 0.5 for the open Buddha scene). After the first
@@ -215,14 +221,17 @@ def batch_bytes_per_path(max_depth: int, stored_per_emitted=None) -> float:
                BATCH_BYTES_PER_STORED * stored_photons(1.0, max_depth, stored_per_emitted))
 
 
-def eye_bytes(width: int, height: int, spp: int) -> int:
-    return int(width) * int(height) * int(spp) * EYE_BYTES_PER_SAMPLE
+def eye_bytes(width: int, height: int, spp: int, kept: bool = False) -> int:
+    """Bytes of the eye pass of a film of ``width`` x ``height`` at ``spp``; ``kept``: its
+    paths keep their state between passes or gather (:data:`EYE_BYTES_PER_SAMPLE_KEPT`)."""
+    return int(width) * int(height) * int(spp) * (EYE_BYTES_PER_SAMPLE_KEPT if kept else
+                                                  EYE_BYTES_PER_SAMPLE)
 
 
 def estimate_render(photon_count: int, max_depth: int, width: int, height: int, spp: int,
                     stored_per_emitted: Optional[float] = None,
                     waves: Sequence[Sequence[int]] = (), map_sizes=None,
-                    batch_share: float = 1.0) -> MemoryEstimate:
+                    batch_share: float = 1.0, kept: bool = False) -> MemoryEstimate:
     """The bytes a render with these inputs needs: ``photon_count`` photons emitted over
     the maps of ``map_sizes`` (photons per map; default one map), held in ``waves`` (lists of
     map indices; default all at once)."""
@@ -235,7 +244,7 @@ def estimate_render(photon_count: int, max_depth: int, width: int, height: int, 
                           waves=len(waves),
                           photon_maps=wave_bytes(emitted, max_depth, stored_per_emitted,
                                                  batch_share),
-                          eye=eye_bytes(width, height, spp))
+                          eye=eye_bytes(width, height, spp, kept))
 
 
 #: The guard's advice beside fewer photons: more maps, or a lower max_depth.

@@ -192,10 +192,11 @@ def progress(args):
     return None if args.quiet else (lambda line: print(line, flush=True))
 
 
-def check_eye_pass(resolution, spp: int, here: bool = True):
+def check_eye_pass(resolution, spp: int, here: bool = True, kept: bool = False):
     """Refuse, before any work, camera samples (``resolution`` x ``spp``) that one wavefront
     of 2^32 lanes cannot hold or (``here``: they run on this machine) that alone would not
-    fit the free memory."""
+    fit the free memory (``kept``: of a progressive render, see
+    :func:`~mi_partpm.memory.eye_bytes`)."""
     from .. import memory
     from ..camera import MAX_WAVEFRONT
     width, height = resolution
@@ -207,7 +208,7 @@ def check_eye_pass(resolution, spp: int, here: bool = True):
     if not here:
         return
     try:
-        memory.check_fits(memory.estimate_render(0, 1, width, height, spp))
+        memory.check_fits(memory.estimate_render(0, 1, width, height, spp, kept=kept))
     except memory.MemoryGuardError as e:
         raise UsageError(f"--resolution {width}x{height} at --spp {spp}: {e}") from None
 

@@ -227,7 +227,8 @@ def run_converge(args) -> int:
         seed=args.seed, data_dir=args.data)
     with user_errors(in_settings):
         settings.check()
-    check_eye_pass(settings.resolution, settings.spp)     # (path's reference splits its own)
+    # (path's reference splits its own; partpm's eye paths keep their state between passes)
+    check_eye_pass(settings.resolution, settings.spp, kept=True)
     check_experiment_scene(args.scene, "converge")
     check_folder(args.out, "--out")
     with user_errors(in_settings):
