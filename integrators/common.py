@@ -43,7 +43,7 @@ from mi_partpm.eyepath import eye_paths
 from mi_partpm.logs import follow_mitsuba_level
 from mi_partpm.photonmap import build_photon_maps
 from mi_partpm.props import UNLIMITED_DEPTH, read_bool, read_photon_map_params
-from mi_partpm.timing import Stopwatch
+from mi_partpm.timing import Heartbeat, Stopwatch
 from mi_partpm.trace import check_emitters, map_sizes, stream_seed, trace_photons
 
 log = logging.getLogger("mi_partpm")
@@ -213,6 +213,14 @@ class PhotonMapper(mi.SamplingIntegrator):
         traced_here = int(map_sizes(layer.photon_count, self.map_count)[maps].sum())
         bounded = p.max_depth != UNLIMITED_DEPTH
         guard = self._tracing_guard(scene, sensor, spp, maps, layer)
+        beat = Heartbeat()
+
+        def traced(line):               # a line of the trace's batches, every 10 s at info
+            elapsed = beat.due()
+            if elapsed is None:
+                log.debug("trace: %s", line)
+            else:
+                log.info("trace: %s, %.0f s", line, elapsed)
         clock = Stopwatch()
         layer.maps = None           # the last wave's maps are freed before the next are traced
         photons = trace_photons(scene, layer.photon_count, self.map_count,
@@ -221,7 +229,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                                 min_bounce=self.min_bounce(), paths=layer.paths,
                                 caustic_through=self.caustic_through(),
                                 caustic_past_landings=self.caustic_past_landings(),
-                                progress=lambda line: log.debug("trace: %s", line),
+                                progress=traced,
                                 memory_check=guard)
         # The wave's maps become this process's maps 0 .. len(maps)-1.
         local_of = np.searchsorted(maps, np.arange(self.map_count)).astype(np.uint32)

@@ -19,7 +19,6 @@ eye paths' sampler is left as Mitsuba's loop expects it.
 from __future__ import annotations
 
 import logging
-import time
 
 import drjit as dr
 import mitsuba as mi
@@ -27,6 +26,7 @@ import mitsuba as mi
 from .estimate import gather_flux
 from .eyepath import lands_on, lobe_context, passes_through
 from .props import UNLIMITED_DEPTH, segment_limit
+from .timing import Heartbeat
 
 __all__ = ["final_gather", "BATCH_LANES"]
 
@@ -63,7 +63,7 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
     n_samples = dr.opaque(mi.UInt64, samples)
     bounded = max_depth != UNLIMITED_DEPTH
     batch = max(1, min(samples, BATCH_LANES // count))
-    start, said, j = time.perf_counter(), 0, 0
+    beat, j = Heartbeat(), 0
     while j < samples:
         rays = min(batch, samples - j)
         # Lane l: ray j + l // count of point l % count (one ray at a time, the points
@@ -108,9 +108,8 @@ def final_gather(scene: mi.Scene, maps, points, width: int, samples: int, radius
         found += part_found
         dr.eval(total, found)
         j += rays
-        elapsed = time.perf_counter() - start
-        if elapsed >= 10 * (said + 1) and j < samples:     # a line every 10 s or so
-            said = int(elapsed // 10)
+        elapsed = beat.due() if j < samples else None      # a line every 10 s or so
+        if elapsed is not None:
             log.info("final gather: %d of %d rays per visible point, %.0f s, about %.0f s "
                      "left", j, samples, elapsed, elapsed / j * (samples - j))
     return total, found

@@ -12,7 +12,7 @@ from typing import Callable
 import drjit as dr
 import numpy as np
 
-__all__ = ["sync", "timed", "median_time", "paired_times", "Stopwatch"]
+__all__ = ["sync", "timed", "median_time", "paired_times", "Stopwatch", "Heartbeat"]
 
 
 def sync(*values):
@@ -74,3 +74,18 @@ class Stopwatch:
         seconds, self._last = now - self._last, now
         self.cpu, self._last_cpu = now_cpu - self._last_cpu, now_cpu
         return seconds
+
+
+class Heartbeat:
+    """When a long phase should say where it is: :meth:`due` returns the seconds since the
+    heartbeat began once every ``period`` seconds (None in between)."""
+
+    def __init__(self, period: float = 10.0):
+        self.start, self.period, self._said = time.perf_counter(), period, 0
+
+    def due(self):
+        elapsed = time.perf_counter() - self.start
+        if elapsed < self.period * (self._said + 1):
+            return None
+        self._said = int(elapsed // self.period)
+        return elapsed

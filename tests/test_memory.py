@@ -295,3 +295,21 @@ def test_a_progressive_eye_pass_is_planned_at_its_own_bytes_per_sample(monkeypat
         render(scene, mi.load_dict({**desc, "passes": 2}))
     assert isinstance(e.value.__cause__, MemoryGuardError)
     assert "the eye pass (the camera's samples) alone needs about" in str(e.value.__cause__)
+
+
+def test_a_long_trace_says_where_it_is(monkeypatch, caplog):
+    """A wave traced in several batches says at info level how far it is, every 10 s (a
+    closed white room traced for 16 s without a line; its batches were logged at debug
+    only). The heartbeat is made due at once here: two batches, a line each."""
+    from mi_partpm.timing import Heartbeat
+    monkeypatch.setattr(Heartbeat, "due", lambda self: 12.0)
+    scene = mi_partpm.load_scene("cornell_box_diffuse", resolution=(8, 8), spp=1)
+    with caplog.at_level("INFO", logger="mi_partpm"):
+        render(scene, mi.load_dict({"type": "partpm", "photon_count": memory.TRACE_BATCH + 1000,
+                                    "map_count": 2, "max_depth": 3}))
+    lines = [r.getMessage() for r in caplog.records if r.levelname == "INFO"
+             and r.getMessage().startswith("trace: batch:")]
+    assert len(lines) == 2, lines
+    for line, done in zip(lines, (memory.TRACE_BATCH, memory.TRACE_BATCH + 1000)):
+        assert line.startswith(f"trace: batch: {done} of {memory.TRACE_BATCH + 1000} photons "
+                               f"traced, ") and line.endswith(" stored, 12 s"), line
