@@ -37,7 +37,7 @@ import numpy as np
 
 from mi_partpm import memory
 from mi_partpm.backends import LocalBackend
-from mi_partpm.camera import CameraPass
+from mi_partpm.camera import CameraPass, scene_sensor
 from mi_partpm.estimate import note_bent_bsdfs
 from mi_partpm.eyepath import eye_paths
 from mi_partpm.logs import follow_mitsuba_level
@@ -154,6 +154,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         #: limit does (the command line's first Ctrl-C); the image has the passes so far.
         self.stop_requested = None
         self._cancelled = False
+        self._lit = True           # whether the last render's emitters give light
         # (scene, seed) of the last render(), for the sample() calls that Mitsuba's aov
         # makes right after it (see :meth:`sample`)
         self._last_render = None
@@ -279,7 +280,11 @@ class PhotonMapper(mi.SamplingIntegrator):
         return 2 if self.params.direct == "nee" else 1
 
     def _eye_size(self, scene, sensor, spp):
-        sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        """(width, height, samples per pixel) of the eye pass for the memory guard; with
+        ``sensor`` None (``sample()``, which traces the rays it is given), ``spp`` rays."""
+        if sensor is None:
+            return 1, 1, int(spp)
+        sensor = scene_sensor(scene, sensor)
         film = sensor.film().crop_size()
         return int(film[0]), int(film[1]), int(spp) or sensor.sampler().sample_count()
 
@@ -415,6 +420,12 @@ class PhotonMapper(mi.SamplingIntegrator):
         self._cancelled = True
         super().cancel()
 
+    def should_stop(self) -> bool:
+        """Whether a render was asked to stop (:meth:`cancel`), until the next render starts
+        (Mitsuba's own flag is cleared only by its own render loop, which this one replaces,
+        and stayed set)."""
+        return self._cancelled
+
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         """Render: for every pass trace and build the maps, follow the eye paths, estimate at
         their visible points and gather; then develop the film. With ``backend="mpi"`` rank 0
@@ -461,7 +472,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                              f": render with develop=True")
         with self.backend.running():
             self.backend.start()
-            check_emitters(scene)            # before any work: a scene it cannot render
+            self._lit = check_emitters(scene)   # before any work: a scene it cannot render
             note_bent_bsdfs(scene)
             seed = _as_int(seed)
             self.radius = self.search_radius(scene)
@@ -551,8 +562,13 @@ class PhotonMapper(mi.SamplingIntegrator):
                                         if k.endswith("photons_stored")))
         if stored == 0 and self.backend.reports:
             depth = self._photon_depth(self._layers[0] if self._layers else None)
-            shown = "emitted and sampled direct" if self.params.direct == "nee" else "emitted"
-            if depth != UNLIMITED_DEPTH and depth < self.min_bounce():
+            # (direct light is sampled from an eye path's first surface: a second segment)
+            shown = "emitted and sampled direct" if self.params.direct == "nee" and \
+                self.params.max_depth != 1 else "emitted"
+            if not self._lit:
+                log.warning("no photon was stored: every emitter's power is 0 (its radiance "
+                            "or intensity); the image holds no light")
+            elif depth != UNLIMITED_DEPTH and depth < self.min_bounce():
                 log.warning("no photon was stored: max_depth = %d %s", self.params.max_depth,
                             f"leaves photons no segment ({self._eye_segments()}); only "
                             f"{shown} light will show" if depth < 1 else
@@ -814,7 +830,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                 self._cancelled = False
 
     def _sample(self, scene, sampler, ray, active, render_seed: int):
-        check_emitters(scene)
+        self._lit = check_emitters(scene)
         note_bent_bsdfs(scene)
         width = dr.width(ray.o)
         self.radius = self.search_radius(scene)
@@ -824,8 +840,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         terms = self.terms(self._layers, width, scene)
         start = time.perf_counter()
         for pass_index in range(self.passes):
-            self._photon_pass(scene, terms, eye.points, width, render_seed=render_seed,
-                              pass_index=pass_index)
+            self._photon_pass(scene, terms, eye.points, width, None, width,
+                              render_seed=render_seed, pass_index=pass_index)
             self._add_stats(passes=1)
             timed_out = 0 < self.time_limit <= time.perf_counter() - start
             asked = self._cancelled or \

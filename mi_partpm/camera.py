@@ -27,10 +27,21 @@ import numpy as np
 
 from .scenes import check_sensor
 
-__all__ = ["CameraPass", "MAX_WAVEFRONT"]
+__all__ = ["CameraPass", "MAX_WAVEFRONT", "scene_sensor"]
 
 #: The most camera samples of one render: a wavefront's lanes are indexed with 32 bits.
 MAX_WAVEFRONT = 0xFFFFFFFF
+
+
+def scene_sensor(scene: mi.Scene, sensor):
+    """``sensor``: an ``mi.Sensor``, or the index of one of the scene's (a numpy integer
+    too, as Mitsuba's ``render`` takes it); anything else a TypeError."""
+    if isinstance(sensor, mi.Sensor):
+        return sensor
+    if isinstance(sensor, (int, np.integer)) and not isinstance(sensor, bool):
+        return scene.sensors()[int(sensor)]
+    raise TypeError(f"sensor must be an mi.Sensor or the index of one of the scene's "
+                    f"sensors, got {sensor!r}")
 
 
 class CameraPass:
@@ -38,7 +49,7 @@ class CameraPass:
 
     def __init__(self, scene: mi.Scene, sensor, seed: int, spp: int, aovs=(),
                  progressive: bool = False):
-        self.sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        self.sensor = scene_sensor(scene, sensor)
         check_sensor(self.sensor, spp=spp)
         self.film = self.sensor.film()
         self.sampler = self.sensor.sampler()

@@ -223,7 +223,8 @@ def emit(scene: mi.Scene, rng, photon_count: int, table, active=True):
 
 def check_emitters(scene: mi.Scene, samples: int = 1024):
     """Refuse emitters whose power is NaN, infinite or negative, or that give light but are
-    never sampled (``sampling_weight`` 0), before any photon is traced.
+    never sampled (``sampling_weight`` 0), before any photon is traced. Returns whether any
+    emitter gives light (False: every test ray's power is 0).
 
     Each emitter emits ``samples`` test rays (stratified samples); Mitsuba accepts such
     values in a scene file, and the tracer would otherwise drop those photons silently.
@@ -232,6 +233,7 @@ def check_emitters(scene: mi.Scene, samples: int = 1024):
     u = (np.arange(samples, dtype=np.float64) + 0.5) / samples
     rng = np.random.default_rng(0)
     s = [mi.Float(np.asarray(a, np.float32)) for a in (u, *rng.random((4, samples)))]
+    lit = False
     for emitter in scene.emitters():
         name = _emitter_name(emitter)
         _warn_if_scaled_envmap(emitter)
@@ -261,6 +263,8 @@ def check_emitters(scene: mi.Scene, samples: int = 1024):
                              f"emitters the scene samples, so its light would be missing from "
                              f"the image; give it a sampling_weight > 0 (a weight changes only "
                              f"how many photons it emits, not its brightness)")
+        lit = lit or bool(np.any(w > 0))
+    return lit
 
 
 def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: int = 0,

@@ -100,14 +100,20 @@ def test_mpi_backend_inside_a_wrapper_says_what_to_do(monkeypatch):
         integrator.sample(scene, sampler, ray)
 
 
-def two_sensor_scene():
-    """The Cornell box with a second camera of a much larger film."""
+def two_sensor_scene(large_first: bool = False, sensors: bool = True):
+    """The Cornell box with a second camera of a much larger film (with ``large_first``,
+    the larger one first; without ``sensors``, none)."""
     scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
-    params = {"type": "scene", "first": scene.sensors()[0],
-              "second": {"type": "perspective", "fov": 40,
-                         "to_world": T().look_at(origin=[0, 0, 3.9], target=[0, 0, 0],
-                                                 up=[0, 1, 0]),
-                         "film": {"type": "hdrfilm", "width": 2000, "height": 2000}}}
+
+    def camera(size, spp):          # (a sensor object would come first whatever its key)
+        return {"type": "perspective", "fov": 40,
+                "to_world": T().look_at(origin=[0, 0, 3.9], target=[0, 0, 0], up=[0, 1, 0]),
+                "sampler": {"type": "independent", "sample_count": spp},
+                "film": {"type": "hdrfilm", "width": size, "height": size}}
+    small, large = camera(8, 1), camera(2000, 4)
+    first, second = (large, small) if large_first else (small, large)
+    params = {"type": "scene", "first": first, "second": second} if sensors else \
+        {"type": "scene"}
     for i, shape in enumerate(scene.shapes()):
         params[f"shape{i}"] = shape
     return mi.load_dict(params)
@@ -116,7 +122,7 @@ def two_sensor_scene():
 def test_memory_guard_uses_the_sensor_and_spp_given_to_render(monkeypatch):
     """The guard sizes the eye pass from render()'s sensor and spp, not the first sensor's
     film and sample count: 8x8 at 1 spp fits in 30 MB, 8x8 at 10^5 spp or a 2000x2000 film
-    at 1 spp (about 800 MB of eye pass each) does not."""
+    at 1 spp (about 2 GB of eye pass each) does not."""
     monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "30e6")
     scene = two_sensor_scene()
     desc = {"type": "partpm", "photon_count": 1000}
@@ -126,6 +132,49 @@ def test_memory_guard_uses_the_sensor_and_spp_given_to_render(monkeypatch):
             mi.render(scene, integrator=mi.load_dict(desc), **kwargs)
         assert isinstance(_root(e.value), MemoryGuardError), kwargs
         assert "eye pass" in str(_root(e.value))
+
+
+@pytest.mark.parametrize("kind", ["aov", "moment"])
+def test_inside_a_wrapper_the_guard_sizes_the_eye_pass_it_is_given(monkeypatch, kind):
+    """Inside aov or moment (sample(), which traces the rays it is given) the guard sized
+    the eye pass from the scene's first sensor: the 8x8 camera of a scene whose first camera
+    is 2000x2000 was refused in 30 MB, and a scene without a sensor, rendered with one of
+    its own, gave an IndexError. Path renders both."""
+    monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "30e6")
+    desc = {"type": kind, "nested": {"type": "partpm", "photon_count": 1000}}
+    if kind == "aov":
+        desc["aovs"] = "dd.y:depth"
+    image = mi.render(two_sensor_scene(large_first=True), integrator=mi.load_dict(desc),
+                      sensor=1)
+    assert image.shape[:2] == (8, 8) and np.array(image)[..., :3].mean() > 0
+    camera = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1).sensors()[0]
+    image = mi.render(two_sensor_scene(sensors=False), integrator=mi.load_dict(desc),
+                      sensor=camera)
+    assert image.shape[:2] == (8, 8) and np.array(image)[..., :3].mean() > 0
+
+
+def test_render_takes_the_sensors_that_paths_render_takes():
+    """integrator.render(scene, sensor) with a numpy integer renders that sensor, as path's
+    does (a loop over np.arange); anything but an index or a Sensor is a TypeError naming
+    sensor (it was an AttributeError about get_medium)."""
+    scene = two_sensor_scene()
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 1000})
+    image = integrator.render(scene, np.int64(0), 0, 1)
+    assert image.shape[:2] == (8, 8)
+    for bad in (None, "1", 1.0):
+        with pytest.raises(TypeError, match="sensor must be an mi.Sensor or the index"):
+            integrator.render(scene, bad, 0, 1)
+
+
+def test_should_stop_is_cleared_by_the_next_render():
+    """should_stop() says a render was cancelled until the next render starts, as path's
+    does (Mitsuba's own flag stayed set after the next render ended)."""
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 1000})
+    integrator.cancel()
+    assert integrator.should_stop()
+    render(scene, integrator)
+    assert not integrator.should_stop()
 
 
 def _root(e):

@@ -275,6 +275,27 @@ def test_scene_where_no_photon_can_be_stored(caplog):
     np.testing.assert_allclose(img, 1.0, rtol=1e-4)
 
 
+def test_why_no_photon_was_stored_is_said_right(caplog):
+    """An emitter of power 0 (set through a parameter update): the warning says so (it said
+    to raise photon_count). With max_depth = 1 and direct = 'nee' no direct light is sampled
+    (an eye path's second segment): the warning says only emitted light shows (it said
+    'emitted and sampled direct')."""
+    scene = sphere_scene([0.5] * 3, [1.0] * 3)
+    params = mi.traverse(scene)
+    key = [k for k in params.keys() if k.endswith("intensity.value")][0]
+    params[key] = mi.Color3f(0.0)
+    params.update()
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        img = render(scene, mi.load_dict({"type": "partpm", "photon_count": 1000}))
+    assert "every emitter's power is 0" in caplog.text and "photon_count" not in caplog.text
+    assert img.max() == 0
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="mi_partpm"):
+        render(sphere_scene([0.5] * 3, [1.0] * 3), mi.load_dict(
+            {"type": "partpm", "photon_count": 1000, "direct": "nee", "max_depth": 1}))
+    assert "only emitted light will show" in caplog.text, caplog.text
+
+
 @pytest.mark.parametrize("props", [
     {"type": "partpm"}, {"type": "partpm", "radius": 0.1},
     {"type": "partpm", "radius": 0.1, "direct": "nee"}, {"type": "pm"}])
