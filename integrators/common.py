@@ -230,6 +230,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                                 min_bounce=self.min_bounce(), paths=layer.paths,
                                 caustic_through=self.caustic_through(),
                                 caustic_past_landings=self.caustic_past_landings(),
+                                store_on=self.store_on(),
                                 progress=traced,
                                 memory_check=guard)
         # The wave's maps become this process's maps 0 .. len(maps)-1.
@@ -269,6 +270,11 @@ class PhotonMapper(mi.SamplingIntegrator):
         lobes too where eye paths trace glossy surfaces on, so that the caustic and the
         global maps split the paths where the eye paths do."""
         return "glossy" if self.params.glossy == "trace" else "delta"
+
+    def store_on(self) -> str:
+        """Where photons are stored (:data:`~mi_partpm.trace.STORE_ON`): with glossy = trace
+        only on surfaces with a diffuse lobe, the only ones the estimates read."""
+        return "diffuse" if self.params.glossy == "trace" else "smooth"
 
     def caustic_past_landings(self) -> bool:
         """Whether caustic paths go on past surfaces they left by a delta lobe (see

@@ -384,6 +384,13 @@ class PartPMIntegrator(PhotonMapper):
                             lobes=estimated_lobes(p.glossy),
                             glossy=p.glossy == "trace" and self.caustic_photon_count > 0)
 
+    def store_on(self) -> str:
+        """A final gather without caustic maps stops its rays at glossy surfaces and reads
+        the maps there (:meth:`_gather`): photons are stored there too."""
+        if self.final_gather and not self.caustic_photon_count:
+            return "smooth"
+        return super().store_on()
+
     def caustic_past_landings(self) -> bool:
         return self.final_gather > 0
 

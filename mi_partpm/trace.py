@@ -6,8 +6,8 @@ the full photon map. Photon power is normalised by the TOTAL photon count N, so 
 density estimates add up to the full estimate with no rescaling (eq. 2).
 
 Tracing is one Dr.Jit kernel per batch of photon paths: a symbolic loop over the bounces in
-which every photon stored on a surface with a non-delta lobe (a diffuse one where glossy
-surfaces are traced on) takes a slot of a preallocated buffer and is written there: one
+which every photon stored on a surface with a non-delta lobe (or a diffuse one,
+``store_on``) takes a slot of a preallocated buffer and is written there: one
 record of :data:`SLOT_FLOATS` floats (position, direction code, power, photon index),
 which Dr.Jit writes as two packet stores instead of a scattered
 store per value (the stores cost a third of the kernel before), and its bounce count and
@@ -50,7 +50,7 @@ from .scenes import check_scene, infinite_sphere, linear_part
 log = logging.getLogger("mi_partpm")
 
 __all__ = ["map_sizes", "map_seeds", "stream_seed", "trace_photons", "check_emitters", "emit",
-           "Photons", "PATHS", "CAUSTIC_THROUGH"]
+           "Photons", "PATHS", "CAUSTIC_THROUGH", "STORE_ON"]
 
 #: Which photons a tracing run stores: all of them, only caustic ones (L S+ D), or the rest.
 PATHS = ("all", "caustic", "global")
@@ -58,6 +58,9 @@ PATHS = ("all", "caustic", "global")
 #: S a mirror or glass, D the first non-delta surface) or "glossy" (S a delta or glossy lobe,
 #: D the first surface with a diffuse lobe; for eye paths that trace glossy surfaces on).
 CAUSTIC_THROUGH = ("delta", "glossy")
+#: Where photons are stored (``store_on`` of :func:`trace_photons`): every surface with a
+#: non-delta lobe, or only those with a diffuse lobe.
+STORE_ON = ("smooth", "diffuse")
 
 
 def map_sizes(photon_count: int, map_count: int) -> np.ndarray:
@@ -273,7 +276,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
                   progress: Optional[Callable[[str], None]] = None,
                   batch_size: int = TRACE_BATCH,
                   memory_check: Optional[Callable[[float, int], None]] = None,
-                  caustic_past_landings: bool = False) -> Photons:
+                  caustic_past_landings: bool = False, store_on: str = "smooth") -> Photons:
     """Trace ``photon_count`` photons split over ``map_count`` maps.
 
     Parameters
@@ -303,10 +306,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     caustic_through : str
         What a caustic path bounces on (:data:`CAUSTIC_THROUGH`): "delta" (the above) or
         "glossy": delta or glossy lobes, up to the first surface with a diffuse lobe (L
-        {S|G}+ D), the caustics of eye paths that trace their glossy surfaces on. With
-        "glossy" no photon is stored on a surface without a diffuse lobe: no estimate reads
-        one there, and within the radius of a surface it touches it was counted there (rough
-        glass resting on a floor made the floor 1.5 times too bright around the contact).
+        {S|G}+ D), the caustics of eye paths that trace their glossy surfaces on.
     progress : callable(str), optional
         Receives a line per batch.
     batch_size : int
@@ -325,6 +325,12 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         gathering needs it: its rays go on through such lobes and its visible points read
         no global map. Otherwise such light stays in the global maps, denser than the
         caustic ones.
+    store_on : str
+        Where photons are stored (:data:`STORE_ON`): on every surface with a non-delta lobe
+        ("smooth"), or only on those with a diffuse lobe ("diffuse": where eye paths trace
+        glossy surfaces on, no estimate reads a photon on one, and within the radius of a
+        surface it touches it was counted there: rough glass resting on a floor made the
+        floor 1.6 times too bright around the contact).
 
     Returns
     -------
@@ -337,6 +343,8 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     if caustic_through not in CAUSTIC_THROUGH:
         raise ValueError(f"caustic_through must be one of {', '.join(CAUSTIC_THROUGH)}, got "
                          f"{caustic_through!r}")
+    if store_on not in STORE_ON:
+        raise ValueError(f"store_on must be one of {', '.join(STORE_ON)}, got {store_on!r}")
     sizes = map_sizes(photon_count, map_count)
     maps = np.arange(map_count) if maps is None else np.asarray(list(maps), dtype=np.int64)
     max_depth = segment_limit(max_depth)
@@ -348,7 +356,7 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
                          f"the maps in several runs: maps=...)")
     run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
                min_bounce, PATHS.index(paths), caustic_through == "glossy",
-               caustic_past_landings, maps, sizes[maps])
+               caustic_past_landings, maps, sizes[maps], store_on == "diffuse")
     # A run of up to ``batch_size // PILOT_SHARE`` paths is one batch with room for
     # PILOT_GUESS photons per path. A longer run traces a pilot of a few thousand paths
     # first, which measures the photons stored per path before the batches size their
@@ -394,11 +402,13 @@ class _Run:
     """What every batch of one tracing run shares."""
 
     def __init__(self, scene, photon_count, seeds, max_depth, rr_depth, min_bounce, paths,
-                 through_glossy=False, past_landings=False, maps=(0,), sizes=None):
+                 through_glossy=False, past_landings=False, maps=(0,), sizes=None,
+                 store_diffuse=False):
         self.scene, self.photon_count = scene, photon_count
         self.seeds = mi.UInt64(seeds)
         self.max_depth, self.rr_depth, self.min_bounce = max_depth, rr_depth, min_bounce
         self.paths, self.through_glossy = paths, through_glossy
+        self.store_diffuse = store_diffuse
         self.past_landings = past_landings
         self.table = _emitter_table(scene)
         # The run's paths, the traced maps' photons one map after another: path l is photon
@@ -662,7 +672,7 @@ def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=No
     rr_from = dr.opaque(mi.UInt32, run.rr_depth)
     store_from = dr.opaque(mi.UInt32, run.min_bounce)
     room = dr.opaque(mi.UInt32, capacity)       # a multiple of the run of slots
-    paths, through_glossy = run.paths, run.through_glossy
+    paths, through_glossy, store_diffuse = run.paths, run.through_glossy, run.store_diffuse
     past_landings = bool(run.past_landings)
     delta_only = dr.full(mi.Bool, True, width)   # every bounce so far was delta (or glossy)
     photon_run, slot_run = claim_runs()
@@ -708,7 +718,7 @@ def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=No
         # first surface with a diffuse lobe.
         lands = active & lands_on(flags, through_glossy)
         caustic = delta_only & (bounce >= 2) & lands    # L S+ D (or L {S|G}+ D)
-        store = lands & (bounce >= store_from)
+        store = active & lands_on(flags, store_diffuse) & (bounce >= store_from)
         if dr.hint(paths == 1, mode="scalar"):
             store &= caustic
         elif dr.hint(paths == 2, mode="scalar"):

@@ -255,7 +255,8 @@ def test_glossy_trace_stores_no_photon_where_no_estimate_reads_it():
     the glass, and the contact is path's within noise and the contact's darkening by the
     radius (0.955 and 0.960 on two seeds): bound 20%."""
     scene = glass_on_a_floor()
-    photons = trace_photons(scene, 20_000, 1, 0, caustic_through="glossy")
+    photons = trace_photons(scene, 20_000, 1, 0, caustic_through="glossy",
+                            store_on="diffuse")
     centre = np.array([0, 0.3, 0])
     def on_glass(photons):          # (not the floor around the contact, at y = 0)
         p = photons.position
