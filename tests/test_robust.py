@@ -885,3 +885,47 @@ def test_compare_checks_its_own_samples_not_the_references_chunks(tmp_path, monk
     monkeypatch.setenv("PARTPM_MEMORY_LIMIT", "2e9")
     with pytest.raises(Reached):
         main(["compare", "cornell_box", "--reference-spp", "512", "--out", str(tmp_path / "c")])
+
+
+CONVERGE_SCENE = """<scene version="3.0.0">
+    <default name="resx" value="8"/><default name="resy" value="8"/>
+    <default name="spp" value="1"/>
+    <sensor type="perspective">
+        <transform name="to_world"><lookat origin="0, 2, 3" target="0, 0, 0" up="0, 1, 0"/>
+        </transform>
+        <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="$resx"/>
+            <integer name="height" value="$resy"/></film>
+    </sensor>
+    <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/>
+        </transform><bsdf type="diffuse"/></shape>
+    <shape type="sphere"><point name="center" x="0" y="1.5" z="0"/>
+        <float name="radius" value="0.2"/>
+        <emitter type="area"><rgb name="radiance" value="10"/></emitter></shape>
+</scene>
+"""
+
+
+def test_converge_keys_its_reference_by_the_scene_and_says_its_noise(tmp_path, capsys,
+                                                                     monkeypatch):
+    """The reference is reused for the same scene file named another way (it was keyed by
+    the path as typed: an absolute and a relative name rendered it twice); its own noise is
+    estimated from its halves, said and recorded (errors near it measure the reference);
+    every method's last image is written beside the curves."""
+    (tmp_path / "s.xml").write_text(CONVERGE_SCENE)
+    out = tmp_path / "c"
+    args = ["--resolution", "8x8", "--reference-spp", "128", "--time", "0.01",
+            "--methods", "pm,path", "--out", str(out)]
+    assert main(["converge", str(tmp_path / "s.xml"), *args]) == 0
+    said = capsys.readouterr().out
+    assert "reference: its own noise, relMSE about" in said and "reference.exr" in said
+    result = json.loads((out / "converge.json").read_text())
+    assert 0 < result["reference_rel_mse"] < 1
+    assert json.loads((out / "reference.json").read_text())["noise_rel_mse"] == \
+        result["reference_rel_mse"]
+    for method in ("pm", "path"):
+        assert list(mi.Bitmap(str(out / f"{method}.exr")).size()) == [8, 8]
+    monkeypatch.chdir(tmp_path)
+    assert main(["converge", "s.xml", *args]) == 0
+    said = capsys.readouterr().out
+    assert "reference: reusing" in said and "and reference.exr" not in said

@@ -235,5 +235,8 @@ def run_converge(args) -> int:
         result = run(settings, args.out, progress=progress(args))
     if not args.quiet:
         print(format_converge(result))
-        print(f"wrote    {args.out}/converge.csv, converge.json, converge.png, reference.exr")
+        images = ", ".join(f"{m}.exr" for m in settings.methods)
+        print(f"wrote    {args.out}/converge.csv, converge.json, converge.png, {images} (each "
+              f"method's last image)"
+              + ("" if result["reference_reused"] else " and reference.exr"))
     return 0

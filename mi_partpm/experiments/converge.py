@@ -4,8 +4,11 @@ Every method renders the same scene, film and camera, and each image is compared
 reference: Mitsuba's ``path`` at a high sample count, rendered in chunks of
 ``CHUNK_SPP`` samples with different seeds (a single wavefront of that many samples would not
 fit in memory) and cached in the output directory (``reference.exr`` and ``reference.json``,
-reused when the scene file, size, sample count and Mitsuba version match: the reference does
-not depend on this project's code).
+reused when the scene's files (by content, wherever they are), size, sample count, seed,
+Mitsuba version and variant match: the reference does not depend on this project's code).
+Its own noise is estimated from its two halves (the even and the odd chunks,
+:func:`~.reference.noise_rel_mse`), said, drawn in the plot and recorded as
+``reference_rel_mse``: errors near it measure the reference rather than the method.
 
 - **partpm**: one progressive render with ``time_limit = seconds``; after passes 1, 2, 3, 4,
   6, 8, 11, 16, 23, ... (about sqrt 2 apart) the image so far is developed and measured (the
@@ -19,7 +22,8 @@ not depend on this project's code).
 Each method runs once untimed at a tiny size first, so no curve pays for compiling kernels.
 The error is the relative MSE of :func:`mi_partpm.experiments.metrics.rel_mse` on the linear,
 unclamped images. Writes ``converge.csv`` (method, seconds, relMSE, setting),
-``converge.json`` and ``converge.png`` (log-log).
+``converge.json``, ``converge.png`` (log-log) and each method's last image
+(``partpm.exr``, ``pm.exr``, ``path.exr``), to look at where its error lies.
 """
 from __future__ import annotations
 
@@ -36,7 +40,7 @@ import numpy as np
 
 from . import metrics
 from .provenance import code_version, scene_digest
-from .reference import path_in_chunks
+from .reference import noise_rel_mse, path_in_chunks
 from ..props import check_float, check_int
 from ..scenes import check_scene, load_scene
 from ..timing import timed
@@ -103,13 +107,18 @@ def _image(img) -> np.ndarray:
     return np.array(img, dtype=np.float64)[..., :3]
 
 
-def path_reference(s: ConvergeSettings, out: Path, say) -> np.ndarray:
-    """Mitsuba's ``path`` at ``reference_spp``, averaged over chunks; cached in ``out``."""
-    meta = {"scene": s.scene, "scene_sha256": scene_digest(s.scene, s.data_dir),
+def path_reference(s: ConvergeSettings, out: Path, say):
+    """Mitsuba's ``path`` at ``reference_spp``, averaged over chunks; cached in ``out``.
+    Returns (image, its estimated relative MSE against the truth or None for one chunk,
+    whether it was reused)."""
+    # The scene by its files' contents: the same file named another way is the same scene.
+    meta = {"scene_sha256": scene_digest(s.scene, s.data_dir),
             "resolution": list(s.resolution), "spp": s.reference_spp, "seed": s.seed,
             "mitsuba": mi.__version__, "variant": mi.variant()}
     exr, info = out / "reference.exr", out / "reference.json"
-    if exr.is_file() and info.is_file() and _json_or_none(info) == meta:
+    recorded = _json_or_none(info) if info.is_file() else None
+    if exr.is_file() and isinstance(recorded, dict) and "noise_rel_mse" in recorded and \
+            {k: recorded.get(k) for k in meta} == meta:
         try:
             image = _image(mi.Bitmap(str(exr)))
         except RuntimeError as e:            # cut short, or damaged since
@@ -117,18 +126,20 @@ def path_reference(s: ConvergeSettings, out: Path, say) -> np.ndarray:
         else:
             if image.shape[:2] == tuple(s.resolution[::-1]):
                 say(f"reference: reusing {exr}")
-                return image
+                return image, recorded["noise_rel_mse"], True
             say(f"reference: {exr} is not {s.resolution[0]}x{s.resolution[1]}: rendering it "
                 f"again")
-    ref, _ = path_in_chunks(_scene(s), s.reference_spp, 1_000_003 + s.seed * 10_007,
-                            CHUNK_SPP, say=say, label="reference: path")
+    ref, _, halves = path_in_chunks(_scene(s), s.reference_spp, 1_000_003 + s.seed * 10_007,
+                                    CHUNK_SPP, say=say, label="reference: path", halves=True)
+    noise = noise_rel_mse(halves)
     # The record goes first and comes back last: an image cut short is never vouched for.
     info.unlink(missing_ok=True)
     temporary = exr.with_name(".reference.writing.exr")
     mi.Bitmap(ref.astype(np.float32)).write(str(temporary))
     temporary.replace(exr)
-    info.write_text(json.dumps(meta, indent=2) + "\n")
-    return ref
+    info.write_text(json.dumps({"scene": s.scene, **meta, "noise_rel_mse": noise}, indent=2)
+                    + "\n")
+    return ref, noise, False
 
 
 def _json_or_none(path: Path):
@@ -139,7 +150,7 @@ def _json_or_none(path: Path):
         return None
 
 
-def _partpm(s: ConvergeSettings, ref, say) -> list:
+def _partpm(s: ConvergeSettings, ref, say, out: Path) -> list:
     scene = _scene(s, s.spp)
     desc = {"type": "partpm", "photon_count": s.photons, "map_count": s.maps,
             "alpha": s.alpha, "seed": s.seed}
@@ -151,7 +162,10 @@ def _partpm(s: ConvergeSettings, ref, say) -> list:
 
     def on_pass(info):
         if info["pass"] in checkpoints or info["last"]:
-            err = metrics.rel_mse(_image(info["image"]()), ref)
+            image = _image(info["image"]())
+            if info["last"]:
+                _write_image(image, out / "partpm.exr")
+            err = metrics.rel_mse(image, ref)
             rows.append({"method": "partpm", "seconds": info["elapsed"], "rel_mse": err,
                          "setting": f"{info['pass']} passes"})
             say(f"partpm: pass {info['pass']}, {info['elapsed']:.1f} s, relMSE {err:.5f}, "
@@ -162,10 +176,12 @@ def _partpm(s: ConvergeSettings, ref, say) -> list:
     return rows
 
 
-def _doubling(method: str, s: ConvergeSettings, ref, say, render, start: int, unit: str):
-    """Renders at ``start``, 2 ``start``, ... until one takes longer than ``seconds``."""
+def _doubling(method: str, s: ConvergeSettings, ref, say, render, start: int, unit: str,
+              out: Path):
+    """Renders at ``start``, 2 ``start``, ... until one takes longer than ``seconds``; the
+    last image is written to ``out/<method>.exr``."""
     render(max(1, start // 4))                    # warm-up
-    rows, amount = [], start
+    rows, amount, img = [], start, None
     while True:
         try:
             img, seconds = render(amount)
@@ -173,14 +189,21 @@ def _doubling(method: str, s: ConvergeSettings, ref, say, render, start: int, un
             if "MemoryGuardError" not in repr(e.__cause__) and "needs about" not in str(e):
                 raise
             say(f"{method}: {amount} {unit} do not fit in memory; the curve stops here")
-            return rows
+            break
         err = metrics.rel_mse(img, ref)
         rows.append({"method": method, "seconds": seconds, "rel_mse": err,
                      "setting": f"{amount} {unit}"})
         say(f"{method}: {amount} {unit}, {seconds:.1f} s, relMSE {err:.5f}")
         if seconds > s.seconds:
-            return rows
+            break
         amount *= 2
+    if rows:                      # (img: the last render that ran)
+        _write_image(img, out / f"{method}.exr")
+    return rows
+
+
+def _write_image(image, path: Path):
+    mi.Bitmap(np.asarray(image, dtype=np.float32)).write(str(path))
 
 
 #: Most samples per pixel of one ``path`` render; more are rendered in chunks of this many
@@ -188,7 +211,7 @@ def _doubling(method: str, s: ConvergeSettings, ref, say, render, start: int, un
 PATH_CHUNK_SPP = 1024
 
 
-def _path(s: ConvergeSettings, ref, say) -> list:
+def _path(s: ConvergeSettings, ref, say, out: Path) -> list:
     scene = _scene(s)
     integrator = mi.load_dict({"type": "path"})
 
@@ -197,7 +220,7 @@ def _path(s: ConvergeSettings, ref, say) -> list:
     def render(spp):
         rendered.append(spp)
         return path_in_chunks(scene, spp, s.seed, PATH_CHUNK_SPP, integrator)
-    rows = _doubling("path", s, ref, say, render, 1, "spp")
+    rows = _doubling("path", s, ref, say, render, 1, "spp", out)
     most = max(rendered, default=0)
     if 4 * most > s.reference_spp:
         # The error of path at n spp against a reference of R spp is its own noise plus the
@@ -212,7 +235,7 @@ def _path(s: ConvergeSettings, ref, say) -> list:
 PM_START = 10_000
 
 
-def _pm(s: ConvergeSettings, ref, say) -> list:
+def _pm(s: ConvergeSettings, ref, say, out: Path) -> list:
     scene = _scene(s, s.spp)
 
     def render(photons):
@@ -221,7 +244,7 @@ def _pm(s: ConvergeSettings, ref, say) -> list:
         img, seconds = timed(lambda: mi.render(scene, integrator=integrator, seed=s.seed))
         return _image(img), seconds
     # From 10,000 photons, or 4 k: the warm-up's quarter of it holds k photons.
-    return _doubling("pm", s, ref, say, render, max(PM_START, 4 * s.k), "photons")
+    return _doubling("pm", s, ref, say, render, max(PM_START, 4 * s.k), "photons", out)
 
 
 def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
@@ -230,14 +253,18 @@ def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
     s, say = settings, progress or (lambda *a: None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    ref = path_reference(s, out, say)
+    ref, noise, reused = path_reference(s, out, say)
+    if noise is not None:
+        say(f"reference: its own noise, relMSE about {noise:.3g} against the truth (from its "
+            f"two halves): errors near it measure the reference")
     runners = {"partpm": _partpm, "pm": _pm, "path": _path}
     rows = []
     for method in s.methods:
-        rows += runners[method](s, ref, say)
+        rows += runners[method](s, ref, say, out)
     result = {"settings": {**asdict(s), "resolution": list(s.resolution),
                            "methods": list(s.methods)},
-              "code": code_version(), "rows": rows,
+              "code": code_version(), "rows": rows, "reference_rel_mse": noise,
+              "reference_reused": reused,
               "at": {str(t): {m: _error_at(rows, m, t) for m in s.methods}
                      for t in sorted({5.0, s.seconds}) if t <= s.seconds}}
     with open(out / "converge.csv", "w", newline="") as f:
@@ -245,7 +272,7 @@ def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
         writer.writeheader()
         writer.writerows(rows)
     (out / "converge.json").write_text(json.dumps(result, indent=2) + "\n")
-    _plot(rows, out / "converge.png", s)
+    _plot(rows, out / "converge.png", s, noise)
     return result
 
 
@@ -260,7 +287,7 @@ def _error_at(rows, method: str, seconds: float):
     return float(np.exp(np.interp(np.log(seconds), t, e)))
 
 
-def _plot(rows, path, s: ConvergeSettings):
+def _plot(rows, path, s: ConvergeSettings, noise=None):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -273,6 +300,9 @@ def _plot(rows, path, s: ConvergeSettings):
         pts = sorted((r["seconds"], r["rel_mse"]) for r in rows if r["method"] == method)
         if pts:
             ax.plot(*zip(*pts), styles[method], label=labels[method], markersize=4)
+    if noise:
+        ax.axhline(noise, color="grey", linestyle=":", linewidth=1,
+                   label="the reference's own noise (estimated)")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("wall time (s)")
@@ -298,4 +328,6 @@ def format_converge(result) -> str:
             v = _error_at(result["rows"], m, t)
             cells.append(f"{v:12.5f}" if v is not None else f"{'-':>12}")
         lines.append(f"{m:8} " + " ".join(cells))
+    if result.get("reference_rel_mse") is not None:
+        lines.append(f"(the reference's own noise: relMSE about {result['reference_rel_mse']:.3g})")
     return "\n".join(lines)

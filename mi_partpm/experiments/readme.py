@@ -349,6 +349,10 @@ def format_converge(results: dict, scenes=("cornell_box", "caustic_glass"),
              f"`path` at {s['reference_spp']} spp; partpm: {s['photons']:,} photons in "
              f"{s['maps']} maps and {s['spp']} spp per pass, alpha = {s['alpha']}; pm: "
              f"k = {s['k']}.")
+    noise = [(scene, run.get("reference_rel_mse")) for scene, run in zip(scenes, runs)]
+    if all(v is not None for _, v in noise):
+        text += (" The references' own noise, estimated from their halves: relMSE about "
+                 + ", ".join(f"{v:.2g} ({scene})" for scene, v in noise) + ".")
     if images:
         text += "\n\n" + " ".join(
             f"![error against time, {scene}]({images}converge_{scene}.png)" for scene in scenes)

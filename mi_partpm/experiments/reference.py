@@ -8,27 +8,51 @@ from typing import Callable, Optional, Tuple
 import mitsuba as mi
 import numpy as np
 
-from ..timing import timed
+from ..timing import Heartbeat, timed
 
-__all__ = ["path_in_chunks"]
+__all__ = ["path_in_chunks", "noise_rel_mse"]
 
 
 def path_in_chunks(scene, spp: int, seed: int, chunk_spp: int, integrator=None,
                    say: Optional[Callable[[str], None]] = None,
-                   label: str = "path") -> Tuple[np.ndarray, float]:
+                   label: str = "path", halves: bool = False) -> Tuple[np.ndarray, float]:
     """``spp`` samples per pixel of ``integrator`` (default Mitsuba's ``path``) in chunks of at
     most ``chunk_spp``, chunk c seeded ``seed + c`` (mod 2^32, mi.render's range), averaged
-    by their sample counts; returns the (H, W, 3) image and the seconds the renders took.
-    ``say`` receives a line per chunk when there is more than one."""
+    by their sample counts; returns the (H, W, 3) image and the seconds the renders took,
+    and with ``halves`` a third item: the images of the even and of the odd chunks (None for
+    one chunk), for :func:`noise_rel_mse`. ``say`` receives a line for the first chunk,
+    about every 10 s and for the last, when there is more than one."""
     integrator = integrator or mi.load_dict({"type": "path"})
     chunks = max(1, -(-spp // chunk_spp))
-    total, seconds = None, 0.0
+    sums, counts, seconds = [0.0, 0.0], [0, 0], 0.0
+    beat = Heartbeat()
     for c in range(chunks):
         n = min(chunk_spp, spp - c * chunk_spp)
-        if say is not None and chunks > 1:
+        if say is not None and chunks > 1 and (c in (0, chunks - 1) or beat.due()):
             say(f"{label}, chunk {c + 1} of {chunks} ({n} spp)")
         img, t = timed(lambda: mi.render(scene, integrator=integrator, spp=n,
                                          seed=(seed + c) % 2**32))
-        img = np.array(img, dtype=np.float64)[..., :3] * n
-        total, seconds = (img if total is None else total + img), seconds + t
-    return total / spp, seconds
+        sums[c % 2] = sums[c % 2] + np.array(img, dtype=np.float64)[..., :3] * n
+        counts[c % 2] += n
+        seconds += t
+    image = (sums[0] + sums[1]) / spp
+    if not halves:
+        return image, seconds
+    return image, seconds, ((sums[0] / counts[0], sums[1] / counts[1]) if chunks > 1
+                            else None)
+
+
+def noise_rel_mse(halves) -> Optional[float]:
+    """The relative MSE (:func:`~.metrics.rel_mse`) of an image against the truth, roughly,
+    from its ``halves`` (the images of two halves of its samples, :func:`path_in_chunks`):
+    their difference has four times the variance of the whole, so a quarter of its square,
+    over the square of the lesser half (over the image's own square, a firefly's pixel
+    divided itself away: a third of the error on caustic_glass). Against path at 16,384 spp
+    (32 x 32): at 2048 spp 0.0017 and 0.0015 for 0.0018 and 0.0015 (Cornell box), 0.024 and
+    0.029 for 0.021 and 0.025 (caustic_glass); at 128 spp up to 3.6 times too high. None
+    without halves."""
+    if halves is None:
+        return None
+    from .metrics import EPSILON
+    a, b = halves
+    return float(np.mean((a - b) ** 2 / (np.minimum(a, b) ** 2 + EPSILON)) / 4)
