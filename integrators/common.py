@@ -48,6 +48,10 @@ from mi_partpm.trace import check_emitters, map_sizes, stream_seed, trace_photon
 
 log = logging.getLogger("mi_partpm")
 
+#: A wave of several maps is planned again while it is traced once it needs more than this
+#: share of the bytes its plan held it to (:meth:`PhotonMapper._tracing_guard`).
+BUDGET_TOLERANCE = 1.05
+
 #: ``passes`` of a render that runs passes until its ``time_limit``, given without ``passes``.
 UNTIL_TIME_LIMIT = 2**31 - 1
 
@@ -155,6 +159,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         self.stop_requested = None
         self._cancelled = False
         self._lit = True           # whether the last render's emitters give light
+        self._planned_budget = None  # the bytes plan_waves held a wave to
         # (scene, seed) of the last render(), for the sample() calls that Mitsuba's aov
         # makes right after it (see :meth:`sample`)
         self._last_render = None
@@ -194,14 +199,16 @@ class PhotonMapper(mi.SamplingIntegrator):
     # ------------------------------------------------------------------ phases
 
     def build_maps(self, scene: mi.Scene, layer: Layer = None, sensor=0, spp: int = 0,
-                   render_seed: int = 0, pass_index: int = 0, maps=None):
+                   render_seed: int = 0, pass_index: int = 0, maps=None, budget=None):
         """Phases 1 and 2 for one layer (default: the first, the global maps): trace the
         photons of ``maps`` (default: every map this process owns) and build their kd-trees;
         ``layer.maps`` holds them until the next wave, and they are returned.
 
         ``sensor`` and ``spp`` (0: the sensor's sampler's) size the eye pass for the memory
         guard; ``render_seed`` and ``pass_index`` select the photon streams with the ``seed``
-        prop (:func:`~mi_partpm.trace.stream_seed`).
+        prop (:func:`~mi_partpm.trace.stream_seed`); ``budget``: the bytes a wave of several
+        maps is held to while it is traced (:class:`~mi_partpm.memory.WaveOverBudget`
+        otherwise; default none, only the free memory).
         """
         p = self.params
         if layer is None:
@@ -213,7 +220,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         maps = owned if maps is None else np.asarray(maps, dtype=np.int64)
         traced_here = int(map_sizes(layer.photon_count, self.map_count)[maps].sum())
         bounded = p.max_depth != UNLIMITED_DEPTH
-        guard = self._tracing_guard(scene, sensor, spp, maps, layer)
+        guard = self._tracing_guard(scene, sensor, spp, maps, layer, budget)
         beat = Heartbeat()
 
         def traced(line):               # a line of the trace's batches, every 10 s at info
@@ -331,6 +338,9 @@ class PhotonMapper(mi.SamplingIntegrator):
         kept = self._eye_kept()
         budget = memory.wave_budget(memory.eye_bytes(width, height, samples, kept),
                                     self.wave_bytes)
+        # What a wave of several maps is held to while it is traced (build_maps), as planned
+        # here, before the eye pass took its memory.
+        self._planned_budget = budget if self.maps_per_wave == 0 else None
         share = self._batch_share()
         waves = memory.plan_waves(sizes, depth, budget, ratio, self.maps_per_wave, share)
         estimate = memory.estimate_render(int(sizes.sum()), depth, width, height, samples,
@@ -371,19 +381,17 @@ class PhotonMapper(mi.SamplingIntegrator):
         """What to lower: photon_count, or its sum with the caustic maps' photons."""
         return " + ".join(prop for prop, _ in self._count_props())
 
-    def _tracing_guard(self, scene, sensor, spp, maps, layer):
+    def _tracing_guard(self, scene, sensor, spp, maps, layer, budget=None):
         """The check repeated while ``layer``'s wave is traced, with its measured photons
-        stored per photon emitted: does the wave still fit?"""
+        stored per photon emitted: does the wave still fit? With ``budget`` (the one its
+        plan held it to) a wave of several maps is held to it too: where its paths store
+        more than planned it is planned again (a closed white room stored 24 photons per
+        photon emitted, planned as 3, and took 3 GB in one wave)."""
         width, height, samples = self._eye_size(scene, sensor, spp)
         emitted = int(self._emitted_per_map()[maps].sum())
         depth, share = self._photon_depth(), self._batch_share()
-        # A wave of several maps is held to a wave's budget too, as its plan was: where its
-        # paths store more than planned it is planned again (a closed white room stored 24
-        # photons per photon emitted, planned as 3, and took 3 GB in one wave).
         kept = self._eye_kept()
-        budget = memory.wave_budget(memory.eye_bytes(width, height, samples, kept),
-                                    self.wave_bytes) \
-            if len(maps) > 1 and self.maps_per_wave == 0 else None
+        budget = budget if len(maps) > 1 else None
 
         def check_during(ratio, done):
             # What this wave measured so far: a wave planned again plans with it.
@@ -395,7 +403,9 @@ class PhotonMapper(mi.SamplingIntegrator):
                                         f"{done:,} photons traced)",
                               option=self._photons_option(), asked=self._photons_asked())
             need = memory.wave_bytes(emitted, depth, measured, share)
-            if budget is not None and need > budget:
+            # (a tolerance for the pilot's noise: a wave packed to its budget at the last
+            # pass's ratio is not split for a percent more)
+            if budget is not None and need > BUDGET_TOLERANCE * budget:
                 raise memory.WaveOverBudget(
                     f"the wave of {len(maps)} maps needs about {memory.size_text(need)}, "
                     f"more than a wave's {memory.size_text(budget)}")
@@ -427,9 +437,10 @@ class PhotonMapper(mi.SamplingIntegrator):
         super().cancel()
 
     def should_stop(self) -> bool:
-        """Whether a render was asked to stop (:meth:`cancel`), until the next render starts
-        (Mitsuba's own flag is cleared only by its own render loop, which this one replaces,
-        and stayed set)."""
+        """Whether a render was asked to stop with :meth:`cancel`, until the next render (or
+        the ``sample()`` calls of a wrapper's render) starts or ends; Mitsuba's own flag is
+        cleared only by its own render loop, which this one replaces, and stayed set. (A
+        ``stop_requested`` that says stop is not a cancel: it ends the render it asks.)"""
         return self._cancelled
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -566,6 +577,8 @@ class PhotonMapper(mi.SamplingIntegrator):
         """Warn when no map of the render (of any process) holds a photon, saying why."""
         stored = self.backend.total(sum(v for k, v in self.stats.items()
                                         if k.endswith("photons_stored")))
+        # (a collective: every process asks, not only the one that reports)
+        traced = self.backend.total(int(self.stats.get("photons_traced", 0)))
         if stored == 0 and self.backend.reports:
             depth = self._photon_depth(self._layers[0] if self._layers else None)
             # (direct light is sampled from an eye path's first surface: a second segment)
@@ -582,15 +595,19 @@ class PhotonMapper(mi.SamplingIntegrator):
                             "instead; the maps add nothing")
             elif self.min_bounce() > 1:
                 log.warning("no photon was stored: direct = '%s' stores only light that "
-                            "bounced at least once, and none reached a surface with a "
-                            "non-delta BSDF (direct light is sampled instead)",
-                            self.params.direct)
+                            "bounced at least once, and none reached a surface with %s "
+                            "(direct light is sampled instead)", self.params.direct,
+                            self._stored_where())
             else:
-                traced = self.backend.total(int(self.stats.get("photons_traced", 0)))
                 log.warning("no photon was stored of the %d traced: the scene has no surface "
-                            "with a non-delta BSDF lit by its emitters%s, or too few photons "
-                            "were traced to reach one (raise photon_count); only emitted "
-                            "light will show", traced, _small_scene_hint(scene))
+                            "with %s lit by its emitters%s, or too few photons were traced "
+                            "to reach one (raise photon_count); only emitted light will show",
+                            traced, self._stored_where(), _small_scene_hint(scene))
+
+    def _stored_where(self) -> str:
+        """The surfaces photons are stored on, for messages (:meth:`store_on`)."""
+        return "a diffuse lobe (glossy = trace stores photons only there)" \
+            if self.store_on() == "diffuse" else "a non-delta BSDF"
 
     def _photon_pass(self, scene, terms, points, width: int, sensor=0, spp: int = 0,
                      render_seed: int = 0, pass_index: int = 0, waves=None):
@@ -613,7 +630,8 @@ class PhotonMapper(mi.SamplingIntegrator):
             before = dict(self.stats)
             try:
                 for layer in self._layers:
-                    self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave)
+                    self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave,
+                                    self._planned_budget)
             except memory.MemoryGuardError:
                 if len(wave) == 1:
                     raise

@@ -25,8 +25,8 @@ __all__ = ["available_bytes", "share_memory", "peak_rss_bytes", "MemoryEstimate"
            "estimate_render", "check_fits", "assumed_stored_per_emitted", "plan_waves",
            "wave_budget", "MemoryGuardError", "WaveOverBudget", "TRACE_BATCH",
            "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES", "BATCH_BYTES_PER_STORED",
-           "batch_bytes_per_path", "EYE_BYTES_PER_SAMPLE", "EYE_BYTES_PER_SAMPLE_KEPT", "ASSUMED_STORED_PER_EMITTED",
-           "ASSUMED_CAUSTIC_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES", "MORE_MAPS", "LOWER_DEPTH",
+           "batch_bytes_per_path", "EYE_BYTES_PER_SAMPLE", "EYE_BYTES_PER_SAMPLE_KEPT",
+           "ASSUMED_STORED_PER_EMITTED", "ASSUMED_CAUSTIC_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES", "MORE_MAPS", "LOWER_DEPTH",
            "FOREST_BYTES_PER_STORED"]
 
 #: Photon paths traced together at most (larger counts run in batches of this size).

@@ -290,6 +290,19 @@ def test_knn_at_the_largest_k_answers_as_scipy(order, queries):
     np.testing.assert_allclose(np.sqrt(result.radius2.numpy()), kth[:, 0], rtol=1e-5)
 
 
+def test_the_grouped_walk_keeps_its_local_arrays_within_bounds():
+    """The grouped walk's candidates and k nearest (8 bytes each per lane) stay within
+    LOCAL_BYTES per lane: 40 bytes per k and lane took 10.5 MB of a thread's 8 MB stack at
+    k = 16,383 and 16 lanes (AVX-512) and ended pm's process (a segfault; its test runs pm
+    in a process of its own). Up to k = 6,553 it keeps 4 k as before; above, fewer, and the
+    answers stay scipy's (the test above, at the largest k)."""
+    from mi_partpm.kdtree.knn import KNN_KEEP, LOCAL_BYTES, MAX_K, kept_candidates
+    for k in (1, 2, 50, 6553, 6554, 10_000, MAX_K):
+        keep = kept_candidates(k)
+        assert k <= keep <= KNN_KEEP * k and 8 * (keep + k) <= LOCAL_BYTES, k
+    assert kept_candidates(6553) == KNN_KEEP * 6553 and kept_candidates(6554) < KNN_KEEP * 6554
+
+
 def _call(kind, forest, q, **kw):
     if kind == "radius":
         return radius_query(forest, q, kw.pop("r", 0.1), lambda i, d2, a, s: mi.Float(1.0),

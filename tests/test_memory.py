@@ -261,8 +261,8 @@ def test_a_wave_stopped_in_its_caustic_layer_is_halved_and_counted_once():
     integrator = mi.load_dict(desc)
     original, tripped = integrator._tracing_guard, []
 
-    def guard(scene, sensor, spp, maps, layer):
-        check = original(scene, sensor, spp, maps, layer)
+    def guard(scene, sensor, spp, maps, layer, budget=None):
+        check = original(scene, sensor, spp, maps, layer, budget)
         if layer.name != "caustic" or tripped:
             return check
 
@@ -313,3 +313,31 @@ def test_a_long_trace_says_where_it_is(monkeypatch, caplog):
     for line, done in zip(lines, (memory.TRACE_BATCH, memory.TRACE_BATCH + 1000)):
         assert line.startswith(f"trace: batch: {done} of {memory.TRACE_BATCH + 1000} photons "
                                f"traced, ") and line.endswith(" stored, 12 s"), line
+
+
+def test_where_photons_are_stored_follows_what_reads_them():
+    """glossy = trace reads the maps at surfaces with a diffuse lobe only, so photons are
+    stored only there; a final gather without caustic maps reads them on glossy surfaces
+    too (its rays stop there), so they are stored there (storing on diffuse lobes alone
+    made it miss the glossy caustic under a rough glass ball: 0.67 of path there); pm
+    follows glossy alone."""
+    def store_on(**props):
+        return mi.load_dict(props).store_on()
+    assert store_on(type="partpm") == "smooth"
+    assert store_on(type="partpm", glossy="trace") == "diffuse"
+    assert store_on(type="partpm", glossy="trace", direct="nee", final_gather=4) == "smooth"
+    assert store_on(type="partpm", glossy="trace", direct="nee", final_gather=4,
+                    caustic_photon_count=1000) == "diffuse"
+    assert store_on(type="pm", glossy="trace") == "diffuse"
+
+
+def test_build_maps_called_alone_is_held_to_the_free_memory_only(monkeypatch):
+    """build_maps called by hand (no plan of waves) traces every map it is given however
+    small a wave's budget is: only a render's plan holds its waves to one (it raised
+    WaveOverBudget, naming no option)."""
+    monkeypatch.setattr(memory, "WAVE_BUDGET_BYTES", 1000)
+    scene = mi_partpm.load_scene("cornell_box", resolution=(8, 8), spp=1)
+    # (over 2^16 photons: the trace measures a pilot first, and checks the memory then)
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 100_000, "map_count": 4})
+    maps = integrator.build_maps(scene)
+    assert maps.map_count == 4 and integrator.stats["photons_stored"] > 100_000

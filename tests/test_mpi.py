@@ -174,6 +174,31 @@ def test_bad_input_found_during_an_mpi_render_reads_as_the_command_lines(tmp_pat
     assert "terminate called" not in done.stderr
 
 
+NOTHING_STORES = """<scene version="3.0.0">
+    <sensor type="perspective">
+        <transform name="to_world"><lookat origin="0, 0, -3" target="0, 0, 0" up="0, 1, 0"/>
+        </transform>
+        <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/>
+        </film>
+    </sensor>
+    <shape type="sphere"><bsdf type="conductor"/></shape>
+    <emitter type="constant"/>
+</scene>
+"""
+
+
+def test_a_job_that_stores_no_photon_warns_and_ends(tmp_path):
+    """A mirror under a sky stores no photon on any rank: only rank 0 asked the job for the
+    photons traced, for its warning (a collective), while rank 1 went on to the image's
+    reduction, and the job hung. Every rank now asks; rank 0 warns and the job ends."""
+    scene = tmp_path / "mirror.xml"
+    scene.write_text(NOTHING_STORES)
+    done = _mpi(2, "-m", "mi_partpm.cli", "render", str(scene), "--maps", "2", "--photons",
+                "2000", "--backend", "mpi", "-o", str(tmp_path / "m.exr"), timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "no photon was stored of the 2000 traced" in done.stderr + done.stdout
+
+
 def test_a_stop_asked_on_any_rank_stops_every_rank_after_the_same_pass():
     """A stop asked on rank 1 alone (a Ctrl-C sent to it) stops the job after that pass;
     only rank 0's was heard before, so the job said it would stop and ran all its passes."""

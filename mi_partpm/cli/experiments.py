@@ -228,14 +228,15 @@ def run_converge(args) -> int:
     with user_errors(in_settings):
         settings.check()
     # (path's reference splits its own; partpm's eye paths keep their state between passes)
-    check_eye_pass(settings.resolution, settings.spp, kept=True)
+    check_eye_pass(settings.resolution, settings.spp, kept="partpm" in settings.methods)
     check_experiment_scene(args.scene, "converge")
     check_folder(args.out, "--out")
     with user_errors(in_settings):
         result = run(settings, args.out, progress=progress(args))
     if not args.quiet:
         print(format_converge(result))
-        images = ", ".join(f"{m}.exr" for m in settings.methods)
+        images = ", ".join(f"{m}.exr" for m in settings.methods
+                           if (Path(args.out) / f"{m}.exr").is_file())
         print(f"wrote    {args.out}/converge.csv, converge.json, converge.png, {images} (each "
               f"method's last image)"
               + ("" if result["reference_reused"] else " and reference.exr"))

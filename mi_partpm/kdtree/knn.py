@@ -170,8 +170,8 @@ def knn_query(forest: Forest, p, k: int, contribution=None, result_type=None,
     walk their balls with the group, as :func:`~.radius.radius_query` does, and keep the
     photons inside; counting them in :data:`KNN_BINS` distance bins finds the bin of the
     k-th, and a heap sorts only that bin. A lane whose ball holds fewer than k photons
-    (below its cap) or more than :data:`KNN_KEEP` x k walks again on its own, so the
-    neighbours are exact either way.
+    (below its cap) or more than it keeps (:func:`kept_candidates`: :data:`KNN_KEEP` x k up
+    to k = 6,553) walks again on its own, so the neighbours are exact either way.
     """
     check_forest(forest)
     if not isinstance(k, (int, np.integer)) or isinstance(k, bool) or not 1 <= k <= MAX_K:
