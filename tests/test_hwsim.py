@@ -1151,7 +1151,7 @@ def test_calibration_recovers_known_cache_costs():
 
 def test_the_cross_check_text_says_whose_maps_each_prediction_table_is_of():
     """The table of a fit's prediction of the other scene, per set, came straight after the
-    fit's own design and error lines, so it read as the fitted scene's own (a QA reader took
+    fit's own design and error lines, so it read as the fitted scene's own (a reader took
     the Buddha's radii and errors for the Cornell box's). A line now names both scenes."""
     from hwsim.calibrate import cross_check, format_cross, synthetic_workloads
     text = format_cross(cross_check(synthetic_workloads(seed=5), synthetic_workloads(seed=6),

@@ -671,7 +671,7 @@ def _panel_ratio(bsdf, props, spp=4, max_depth=-1):
 def test_final_gather_behind_a_bounce_of_weight_below_one(bsdf, props):
     """Visible points reached through a 50% mirror (throughput 0.5) or split four ways at a
     rough conductor (1/4 each): their final gather was multiplied by that weight twice, 0.84
-    and 0.92 of path on the panel's pixels (found by a QA helper). Measured now 0.995 and
+    and 0.92 of path on the panel's pixels (as first measured). Measured now 0.995 and
     0.999; bound 4%, the photon maps' own bias on these pixels being about 1%."""
     ratio = _panel_ratio(bsdf, {"direct": "nee", "final_gather": 4, **props})
     print(f"{bsdf['type']}: partpm / path on the panel {ratio:.3f}")
@@ -681,8 +681,8 @@ def test_final_gather_behind_a_bounce_of_weight_below_one(bsdf, props):
 def test_final_gather_counts_no_light_path_longer_than_max_depth():
     """A thin green-tinted glass pane seen in front of the lit back wall, max_depth 3, no
     caustic map: the final gather's rays that reach the light through the pane again (a
-    path of 4 segments) were counted, and the pane was 1.22 of path (1.68 in the scene of the
-    QA helper that found it); photons read after a gather ray's delta bounces may have as
+    path of 4 segments) were counted, and the pane was 1.22 of path (1.68 in the scene it was
+    found in); photons read after a gather ray's delta bounces may have as
     many segments as are left after those bounces. Measured now 1.00; bound 4%."""
     pane = {"type": "thindielectric",
             "specular_transmittance": {"type": "rgb", "value": [0.4, 0.9, 0.6]}}
@@ -695,7 +695,7 @@ def test_final_gather_counts_no_light_path_longer_than_max_depth():
 def test_final_gather_from_a_masked_diffuse_surface_with_glossy_trace(opacity):
     """With glossy = "trace" the gather rays sample the diffuse lobes only, and Mitsuba's
     mask then sampled its null lobe every time: no gather ray left a masked diffuse panel
-    (0.81 and 0.88 of path at opacity 1 and 0.5, found by a QA helper). Measured now 0.999;
+    (0.81 and 0.88 of path at opacity 1 and 0.5, as first measured). Measured now 0.999;
     bound 4%."""
     bsdf = {"type": "mask", "opacity": opacity, "bsdf": {"type": "twosided",
                                                          "bsdf": {"type": "diffuse"}}}
@@ -733,8 +733,8 @@ def test_a_normal_map_is_estimated_per_photon():
 def test_a_normal_map_inside_a_shape_group_is_found():
     """The shapes of a shape group are not among scene.shapes() (their instances are): a
     normal map on an instanced panel was estimated as plain diffuse (tiles down to 0.73
-    of path's, where the same panels as plain shapes gave 0.89-1.06; found by a QA
-    helper). A group's non-Lambertian-class BSDF is now taken as bent (no ray of the scene
+    of path's, where the same panels as plain shapes gave 0.89-1.06, as first
+    measured). A group's non-Lambertian-class BSDF is now taken as bent (no ray of the scene
     reaches the group's own space to test it); Mitsuba's diffuse inside a group is not."""
     from mi_partpm.estimate import note_bent_bsdfs
     from mi_partpm.eyepath import registry_id
@@ -775,8 +775,8 @@ def test_photons_bounce_off_smooth_vertex_normals_as_light_does(tmp_path, box_bs
     """A flat box as an OBJ without normals: Mitsuba gives it smooth vertex normals, far
     from its faces' at the corners. Photons that bounced off it lacked the adjoint BSDF's
     correction for shading normals (and the light-leak test), which Mitsuba's light tracer
-    applies at every bounce: the tiles lit by it came out up to 1.19 of path's (a QA
-    helper's scene: 1.18). And the estimate on its side face took in the photons of its
+    applies at every bounce: the tiles lit by it came out up to 1.19 of path's (in the
+    scene it was found in: 1.18). And the estimate on its side face took in the photons of its
     top over the edge, whose shading normal tilts up to meet them: that tile at 1.16,
     1.14 with the bounces corrected; the same with a rough plastic box, whose BSDF is
     evaluated per photon (1.13, found by a reviewer). Bound: every 4 x 4 tile in

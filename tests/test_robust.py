@@ -736,8 +736,8 @@ def _instanced(shape, to_world):
 
 def test_a_medium_inside_a_shape_group_is_refused_as_on_a_plain_shape():
     """The shapes of a shape group are not among the scene's shapes, so a medium bounded by
-    one rendered as vacuum without a word (0.370 against volpath's 0.350, found by a QA
-    helper)."""
+    one rendered as vacuum without a word (0.370 against volpath's 0.350, as first
+    measured)."""
     from mi_partpm.scenes import check_scene
     scene = _instanced({"type": "cube", "bsdf": {"type": "null"},
                         "interior": {"type": "homogeneous"}}, mi.ScalarTransform4f())
@@ -748,8 +748,8 @@ def test_a_medium_inside_a_shape_group_is_refused_as_on_a_plain_shape():
 
 def test_an_instance_that_shears_is_warned_about_and_one_that_rotates_is_not(caplog):
     """Mitsuba 3.9 gives a sheared or unevenly scaled instance's surfaces normals that are
-    not perpendicular to them, which the estimate reads (0.95 of path where a QA helper
-    looked); a rotation with a uniform scale is a similarity and renders as path does."""
+    not perpendicular to them, which the estimate reads (0.95 of path where it was
+    measured); a rotation with a uniform scale is a similarity and renders as path does."""
     from mi_partpm.scenes import check_scene
     T = mi.ScalarTransform4f
     with caplog.at_level("WARNING", logger="mi_partpm"):
