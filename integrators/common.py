@@ -353,9 +353,9 @@ class PhotonMapper(mi.SamplingIntegrator):
         return [[int(owned[i]) for i in wave] for wave in waves]
 
     def _eye_kept(self) -> bool:
-        """Whether the eye paths keep their state between passes or gather (more bytes per
-        sample for the memory guard)."""
-        return self.passes > 1 or bool(getattr(self, "final_gather", 0))
+        """Whether the eye paths keep their state between passes (more bytes per sample for
+        the memory guard; partpm's final gathering keeps it too)."""
+        return self.passes > 1
 
     def _batch_share(self) -> float:
         """The share of a wave's photons traced at once: the largest layer's (the layers
@@ -454,7 +454,8 @@ class PhotonMapper(mi.SamplingIntegrator):
             # and a cancel() during the one must end the other too)
             self._cancelled = False
             self._last_render = None
-            with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps():
+            with dr.suspend_grad(), follow_mitsuba_level(), self._freeing_maps(), \
+                    memory.render_memory():
                 image = self._render(scene, sensor, seed, spp, develop, evaluate)
             self._last_render = (id(scene), _as_int(seed))
             return image
@@ -843,7 +844,8 @@ class PhotonMapper(mi.SamplingIntegrator):
                              f"must be the scene's top-level integrator (its ranks gather "
                              f"whole images); use backend='local' inside moment or aov")
         _wait_for_background_tasks()
-        with self._busy, follow_mitsuba_level(), self._freeing_maps():
+        with self._busy, follow_mitsuba_level(), self._freeing_maps(), \
+                memory.render_memory():
             last = self._last_render
             render_seed = last[1] if last is not None and last[0] == id(scene) else 0
             try:

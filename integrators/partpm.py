@@ -275,6 +275,10 @@ class PartPMIntegrator(PhotonMapper):
         # A final gather reads the global map where its rays land: direct light there too.
         return 1 if self.final_gather else super().min_bounce()
 
+    def _eye_kept(self) -> bool:
+        # The gather keeps every eye path's visible point while its rays are traced.
+        return bool(self.final_gather) or super()._eye_kept()
+
     def _photon_depth(self, layer=None) -> int:
         # A final gather reads the global maps one segment past the eye path: their photons
         # are a segment shorter (at max_depth 2 they would all be traced for nothing).

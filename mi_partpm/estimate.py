@@ -239,7 +239,7 @@ class _Estimator:
             f = lane.bsdf.eval(self.ctx, lane.si, wo, general) / dr.select(general, cos, 1.0)
             # The BSDF reads the shading side; ``agree`` asks the geometric one too, or a
             # rough plastic on smooth normals took in the next face's photons over an edge
-            # (a tile at 1.13 of path's, found by a reviewer).
+            # (a tile at 1.13 of path's).
             value = dr.select(lane.plain, value, dr.select(agree, f * power, 0.0))
         if self.weight is not None:
             value = value * self.weight(dist2, lane.radius2)

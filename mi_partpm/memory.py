@@ -18,16 +18,17 @@ from __future__ import annotations
 import os
 import resource
 import sys
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
-__all__ = ["available_bytes", "share_memory", "peak_rss_bytes", "MemoryEstimate",
-           "estimate_render", "check_fits", "assumed_stored_per_emitted", "plan_waves",
-           "wave_budget", "MemoryGuardError", "WaveOverBudget", "TRACE_BATCH",
+__all__ = ["available_bytes", "share_memory", "render_memory", "peak_rss_bytes",
+           "MemoryEstimate", "estimate_render", "check_fits", "assumed_stored_per_emitted",
+           "plan_waves", "wave_budget", "MemoryGuardError", "WaveOverBudget", "TRACE_BATCH",
            "WAVE_BYTES_PER_STORED", "TRACE_BATCH_BYTES", "BATCH_BYTES_PER_STORED",
            "batch_bytes_per_path", "EYE_BYTES_PER_SAMPLE", "EYE_BYTES_PER_SAMPLE_KEPT",
-           "ASSUMED_STORED_PER_EMITTED", "ASSUMED_CAUSTIC_STORED_PER_EMITTED", "WAVE_BUDGET_BYTES", "MORE_MAPS", "LOWER_DEPTH",
-           "FOREST_BYTES_PER_STORED"]
+           "ASSUMED_STORED_PER_EMITTED", "ASSUMED_CAUSTIC_STORED_PER_EMITTED",
+           "WAVE_BUDGET_BYTES", "MORE_MAPS", "LOWER_DEPTH", "FOREST_BYTES_PER_STORED"]
 
 #: Photon paths traced together at most (larger counts run in batches of this size).
 TRACE_BATCH = 1 << 20
@@ -113,10 +114,42 @@ def share_memory(processes: int):
     _SHARERS = max(1, int(processes))
 
 
+#: This process's resident bytes when its outermost render began (:func:`render_memory`);
+#: None outside a render.
+_RENDER_START: Optional[int] = None
+
+
+@contextmanager
+def render_memory():
+    """Within it (a render), what the render holds counts as free to it: the guard's checks
+    after the eye pass (while a wave is traced, a wave planned again, the next pass's plan)
+    compare the whole render's bytes with what is free, and ``MemAvailable`` had already
+    lost what the render holds: a 1920 x 1080 x 16 render that fitted its plan was refused
+    once its eye pass had run. Nested renders (a wrapper's) keep the outermost start."""
+    global _RENDER_START
+    outermost = _RENDER_START is None
+    if outermost:
+        _RENDER_START = _proc_bytes("/proc/self/status", "VmRSS")
+    try:
+        yield
+    finally:
+        if outermost:
+            _RENDER_START = None
+
+
+def _held_by_render() -> int:
+    """Resident bytes this process gained since its render began (0 outside one)."""
+    if _RENDER_START is None:
+        return 0
+    now = _proc_bytes("/proc/self/status", "VmRSS")
+    return 0 if now is None else max(0, now - _RENDER_START)
+
+
 def available_bytes() -> Optional[int]:
     """Free memory for this process (``MemAvailable``, divided among the ranks of an MPI job
-    on this machine (:func:`share_memory`), or ``PARTPM_MEMORY_LIMIT`` where it is set, the
-    free memory of each process: a ValueError where that is not a number >= 1), or None
+    on this machine (:func:`share_memory`), plus, within a render, what the render holds
+    (:func:`render_memory`); or ``PARTPM_MEMORY_LIMIT`` where it is set, the free memory of
+    each process for a whole render: a ValueError where that is not a number >= 1), or None
     where it cannot be read."""
     override = os.environ.get("PARTPM_MEMORY_LIMIT")
     if override:
@@ -129,7 +162,7 @@ def available_bytes() -> Optional[int]:
                              f"must be a number >= 1, e.g. 8e9; got {override!r}")
         return int(value)
     free = _proc_bytes("/proc/meminfo", "MemAvailable")
-    return None if free is None else free // _SHARERS
+    return None if free is None else free // _SHARERS + _held_by_render()
 
 
 def peak_rss_bytes() -> int:

@@ -341,3 +341,31 @@ def test_build_maps_called_alone_is_held_to_the_free_memory_only(monkeypatch):
     integrator = mi.load_dict({"type": "partpm", "photon_count": 100_000, "map_count": 4})
     maps = integrator.build_maps(scene)
     assert maps.map_count == 4 and integrator.stats["photons_stored"] > 100_000
+
+
+def test_the_render_s_own_memory_counts_as_free_to_it(monkeypatch):
+    """Free memory (MemAvailable) falls as the render allocates, so the checks made after its
+    eye pass (while a wave is traced, a wave planned again, the next pass's plan) must count
+    what the render already holds as its own: a 1920 x 1080 x 16 render that fitted its plan
+    was refused after its eye pass (the eye pass counted twice: once held, once estimated).
+    Here the machine has a fixed amount, of which MemAvailable reports what this process
+    does not hold: a render planned within it is not refused later."""
+    status = memory._proc_bytes
+    start = status("/proc/self/status", "VmRSS")
+    eye = memory.eye_bytes(128, 128, 64, kept=True)
+    machine = eye + int(1.3 * wave_bytes(50_000, -1)) + 150_000_000
+
+    def fake(path, key):
+        if key == "MemAvailable":
+            return machine - max(0, status("/proc/self/status", "VmRSS") - start)
+        return status(path, key)
+    monkeypatch.delenv("PARTPM_MEMORY_LIMIT", raising=False)
+    monkeypatch.setattr(memory, "_proc_bytes", fake)
+    scene = mi_partpm.load_scene("cornell_box", resolution=(128, 128), spp=64)
+    integrator = mi.load_dict({"type": "partpm", "photon_count": 50_000, "map_count": 2,
+                                  "passes": 2})
+    image = render(scene, integrator)
+    assert integrator.stats["photons_traced"] == 100_000 and np.isfinite(image).all()
+    # The eye pass did take memory: without counting it as the render's own the checks
+    # after it saw less free than the plan did.
+    assert status("/proc/self/status", "VmRSS") - start > 0.25 * eye

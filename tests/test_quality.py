@@ -779,7 +779,7 @@ def test_photons_bounce_off_smooth_vertex_normals_as_light_does(tmp_path, box_bs
     scene it was found in: 1.18). And the estimate on its side face took in the photons of its
     top over the edge, whose shading normal tilts up to meet them: that tile at 1.16,
     1.14 with the bounces corrected; the same with a rough plastic box, whose BSDF is
-    evaluated per photon (1.13, found by a reviewer). Bound: every 4 x 4 tile in
+    evaluated per photon (1.13). Bound: every 4 x 4 tile in
     [0.9, 1.08] (measured 0.95-1.02; the photon map's blur at the box's edges and about 3%
     of noise per tile)."""
     (tmp_path / "cube.obj").write_text(CUBE_OBJ)

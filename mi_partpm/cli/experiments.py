@@ -235,8 +235,7 @@ def run_converge(args) -> int:
         result = run(settings, args.out, progress=progress(args))
     if not args.quiet:
         print(format_converge(result))
-        images = ", ".join(f"{m}.exr" for m in settings.methods
-                           if (Path(args.out) / f"{m}.exr").is_file())
+        images = ", ".join(result["images"])
         print(f"wrote    {args.out}/converge.csv, converge.json, converge.png, {images} (each "
               f"method's last image)"
               + ("" if result["reference_reused"] else " and reference.exr"))

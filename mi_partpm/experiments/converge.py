@@ -265,6 +265,8 @@ def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
                            "methods": list(s.methods)},
               "code": code_version(), "rows": rows, "reference_rel_mse": noise,
               "reference_reused": reused,
+              # (a method writes its last image when it has a row)
+              "images": [f"{m}.exr" for m in s.methods if any(r["method"] == m for r in rows)],
               "at": {str(t): {m: _error_at(rows, m, t) for m in s.methods}
                      for t in sorted({5.0, s.seconds}) if t <= s.seconds}}
     with open(out / "converge.csv", "w", newline="") as f:

@@ -9,6 +9,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..timing import Heartbeat, timed
+from .metrics import EPSILON
 
 __all__ = ["path_in_chunks", "noise_rel_mse"]
 
@@ -20,8 +21,8 @@ def path_in_chunks(scene, spp: int, seed: int, chunk_spp: int, integrator=None,
     most ``chunk_spp``, chunk c seeded ``seed + c`` (mod 2^32, mi.render's range), averaged
     by their sample counts; returns the (H, W, 3) image and the seconds the renders took,
     and with ``halves`` a third item: the images of the even and of the odd chunks and their
-    sample counts (None for one chunk), for :func:`noise_rel_mse`. ``say`` receives a line for the first chunk,
-    about every 10 s and for the last, when there is more than one."""
+    sample counts (None for one chunk), for :func:`noise_rel_mse`. ``say`` receives a line
+    for the first chunk, about every 10 s and for the last, when there is more than one."""
     integrator = integrator or mi.load_dict({"type": "path"})
     chunks = max(1, -(-spp // chunk_spp))
     sums, counts, seconds = [0.0, 0.0], [0, 0], 0.0
@@ -54,7 +55,6 @@ def noise_rel_mse(halves) -> Optional[float]:
     without halves."""
     if halves is None:
         return None
-    from .metrics import EPSILON
     a, b, n0, n1 = halves
     share = n0 * n1 / (n0 + n1) ** 2
     return float(np.mean((a - b) ** 2 / (np.minimum(a, b) ** 2 + EPSILON)) * share)

@@ -364,7 +364,7 @@ def _check_instances(scene: mi.Scene, instances, what: str):
     refused as on a plain shape. Instances whose to_world shears or scales unevenly get one
     warning per scene: Mitsuba 3.9 gives their surfaces a normal that is not perpendicular
     to them (a sheared cube: n . dp/du = -0.17), which the shading correction and the side
-    test read (0.95 of path's mean where a QA helper looked; the same matrix as the shapes'
+    test read (0.95 of path's mean on a sheared cube's faces; the same matrix as the shapes'
     own to_world gave 1.00). One traversal of the scene and one test of all the matrices
     at once: 3000 instances take about 0.05 s."""
     params = mi.traverse(scene)
