@@ -142,7 +142,8 @@ def calibration(loads, meta, check_dir=None) -> dict:
     from .calibrate import calibrate, check
     from .workload import WorkloadSet, load_workload_sets
     if any(w.map_seconds.size == 0 for w in loads.values()):
-        return {}
+        return {"skipped": "the workloads have no measured map_seconds (R = 0, a synthetic "
+                           "workload): no costs to fit"}
     try:
         # The workload's own meta: its packets' lanes and L1 cache enter the fit.
         f = calibrate(WorkloadSet(meta.get("scene", "workloads"), meta, loads))
@@ -203,6 +204,8 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
         raise ValueError(f"check: {check_dir} holds neither sets.json (calibration sets "
                          f"written by 'partpm calibrate') nor meta.json (a workloads "
                          f"directory){folder_hint(check_dir)}")
+    if check_dir is not None:
+        _check_measured(loads, check_dir)
     say(f"{meta.get('scene', workload_dir)}: n = {', '.join(map(str, sorted(loads)))}, "
         f"{meta['queries']} queries per map")
     out = Path(out_dir)
@@ -246,6 +249,24 @@ def run_report(workload_dir, config: HardwareConfig, out_dir, check_dir=None,
     return result
 
 
+def _check_measured(loads, check_dir: Path):
+    """Before any simulation: ``--check`` fits costs to these workloads' measured map times
+    and checks them on ``check_dir``'s, so both must have some (a ValueError naming which
+    has none)."""
+    from .workload import load_workload_sets
+    if any(w.map_seconds.size == 0 for w in loads.values()):
+        raise ValueError(f"check: the workloads have no measured map_seconds (R = 0), so "
+                         f"there are no costs to fit and check on {check_dir}: drop the "
+                         f"check, or give workloads written by 'partpm speedup'")
+    _, other = load_workload_sets(check_dir)
+    for s in other:
+        for n, w in s.loads.items():
+            if w.map_seconds.size == 0 or not np.all(w.map_seconds > 0):
+                raise ValueError(f"check: {check_dir} (n = {n}) has no measured map_seconds "
+                                 f"(R = 0) or a time of 0: the fitted costs cannot be checked "
+                                 f"on it")
+
+
 def check_out_folder(out, name: str):
     """A ValueError naming ``name`` where the folder ``out`` cannot be made or written (an
     empty name, a file on its way, a folder above it that cannot be written); nothing is
@@ -285,8 +306,17 @@ def _per_n(config, loads):
                      "dram_bytes_max": float(r.dram_bytes.max()),
                      "energy_mj": r.energy_joules * 1e3,
                      "nj_per_query": r.energy_joules / r.queries * 1e9,
+                     # (None without n = 1: report.json stays strict JSON)
                      "replicated_traversal": (r.nodes_visited / base_nodes
-                                              if base_nodes else float("nan"))})
+                                              if base_nodes else None)})
+        if r.frame_cycles <= 0:
+            raise ValueError(f"the frame of n = {n} takes 0 cycles: the config charges "
+                             f"nothing for what this workload does (its queries visit "
+                             f"{int(loads[n].nodes_visited.sum()):,} nodes, test "
+                             f"{int(loads[n].photons_tested.sum()):,} photons and find "
+                             f"{int(loads[n].photons_found.sum()):,}): give those actions a "
+                             f"cost (cycles_per_node, cycles_per_test, "
+                             f"cycles_per_accumulate)")
         largest = r
     for row in rows:
         row["speedup"] = rows[0]["frame_cycles"] / row["frame_cycles"]
@@ -402,7 +432,8 @@ def _plots(rows, sweep, contention, detail, out, scene):
 
 
 def _or_na(value, width):
-    return f"{value:{width}.2f}" if value == value else "n/a".rjust(width)
+    return f"{value:{width}.2f}" if value is not None and value == value \
+        else "n/a".rjust(width)
 
 
 def format_report(result) -> str:

@@ -159,7 +159,14 @@ def _load_map_workloads(path: Path, n: int, meta: dict) -> MapWorkloads:
         for k, kind in _ARRAYS.items():
             if k not in z:
                 raise ValueError(f"{path}: {k} is missing (format in hwsim/WORKLOAD.md)")
-            a = z[k]
+            try:
+                a = z[k]
+            except ValueError:       # an array of Python objects (pickled): not loaded
+                raise ValueError(f"{path}: {k} is an array of Python objects; it must hold "
+                                 f"numbers (format in hwsim/WORKLOAD.md)") from None
+            if a.dtype.kind not in "iuf":
+                raise ValueError(f"{path}: {k} must hold integers or floats (format in "
+                                 f"hwsim/WORKLOAD.md), got dtype {a.dtype}")
             ok = {"nq": a.shape == (n, q), "n": a.shape == (n,),
                   "nr": a.ndim == 2 and a.shape[0] == n}[kind]
             if not ok:

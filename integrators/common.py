@@ -42,7 +42,7 @@ from mi_partpm.estimate import note_bent_bsdfs
 from mi_partpm.eyepath import eye_paths
 from mi_partpm.logs import follow_mitsuba_level
 from mi_partpm.photonmap import build_photon_maps
-from mi_partpm.props import UNLIMITED_DEPTH, read_bool, read_photon_map_params
+from mi_partpm.props import UNLIMITED_DEPTH, read_bool, read_int, read_photon_map_params
 from mi_partpm.timing import Heartbeat, Stopwatch
 from mi_partpm.trace import check_emitters, map_sizes, stream_seed, trace_photons
 
@@ -56,6 +56,25 @@ BUDGET_TOLERANCE = 1.05
 UNTIL_TIME_LIMIT = 2**31 - 1
 
 __all__ = ["PhotonMapper", "Layer", "Term"]
+
+
+#: The fewest eye samples of a set where a render splits its samples by itself to fit
+#: (:meth:`PhotonMapper._fitting_split`): a set's kernels and its estimate cost the same
+#: launches however few samples it has.
+MIN_SET_SAMPLES = 1 << 16
+
+
+def _scene_digest(scene) -> str:
+    """A digest of what Mitsuba says of the scene's emitters and shapes (their radiance,
+    transforms, BSDFs and sizes), for the processes of a render to compare: ranks that had
+    loaded another copy of a scene file, with its light 4 times brighter, gave an image
+    between the two in silence. Folders in file names and object addresses are left out:
+    the same files may lie in other folders on other machines."""
+    import hashlib
+    import re
+    text = "\n".join(str(o) for o in list(scene.emitters()) + list(scene.shapes()))
+    text = re.sub(r"0x[0-9a-fA-F]+", "", re.sub(r"[^\s\"'\[\],=]*[/\\]", "", text))
+    return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
 def _radiance(terms):
@@ -138,14 +157,6 @@ class PhotonMapper(mi.SamplingIntegrator):
             # Mitsuba's base class reads it first, with a message that gives no value.
             read_bool(props, "hide_emitters", False)
         super().__init__(props if props is not None else mi.Properties())
-        if props is not None and "samples_per_pass" in props:
-            # Mitsuba's base class takes it (path splits its samples into passes by it).
-            progressive = "; its passes are photon passes (passes, time_limit)" \
-                if self.progressive else ""
-            log.warning("samples_per_pass = %s is not used: %s traces every sample of a pass "
-                        "at once (its memory guard says when they would not fit, and what "
-                        "to lower)%s", props["samples_per_pass"], type(self).__name__,
-                        progressive)
         self.radius = None
         self._layers = []
         self._stored_per_emitted = {}
@@ -170,6 +181,16 @@ class PhotonMapper(mi.SamplingIntegrator):
         self.map_count = 1
         self.backend = LocalBackend()
         self.read_estimator_props(props)
+        #: Eye samples per pixel traced at once by a render of one pass (0: all of them):
+        #: Mitsuba's ``samples_per_pass``, which splits path's samples into passes.
+        self.samples_per_pass = 0
+        if props is not None and "samples_per_pass" in props:
+            self.samples_per_pass = read_int(props, "samples_per_pass", 0, low=1)
+            if self.passes > 1:
+                log.warning("samples_per_pass = %d is not used: %s with passes > 1 traces "
+                            "every sample of a pass at once (its passes are photon passes, "
+                            "each with spp samples per pixel: lower spp to trace fewer at "
+                            "once)", self.samples_per_pass, type(self).__name__)
 
     # ------------------------------------------------------------------ for subclasses
 
@@ -495,10 +516,19 @@ class PhotonMapper(mi.SamplingIntegrator):
             seed = _as_int(seed)
             self.radius = self.search_radius(scene)
             self._start_stats(seed)
-            camera = CameraPass(scene, sensor, seed, spp, self.aov_names(), self.passes > 1)
+            total, split = self._split_spp(scene, sensor, spp)
+            camera = CameraPass(scene, sensor, seed, split or spp, self.aov_names(),
+                                self.passes > 1)
             self.backend.check_same(self._settings(scene, camera, seed))
-            L, alpha = self._passes(scene, camera, seed)
-            image = camera.develop(L, alpha, develop)
+            if split:
+                try:
+                    image = self._split_pass(scene, camera, seed, total // split, develop)
+                finally:
+                    # The sensor's sampler keeps the render's spp, as after Mitsuba's render.
+                    camera.sampler.set_sample_count(total)
+            else:
+                L, alpha = self._passes(scene, camera, seed)
+                image = camera.develop(L, alpha, develop)
             if evaluate:
                 dr.eval(image)
             self.stats["peak_memory_bytes"] = memory.peak_rss_bytes()
@@ -516,7 +546,8 @@ class PhotonMapper(mi.SamplingIntegrator):
                 "integrator": str(self), "radius": self.radius,
                 "scene": (len(scene.shapes()), len(scene.emitters()),
                           tuple(float(box.min[a]) for a in range(3)),
-                          tuple(float(box.max[a]) for a in range(3)))}
+                          tuple(float(box.max[a]) for a in range(3))),
+                "scene content": _scene_digest(scene)}
 
     def _passes(self, scene, camera: CameraPass, seed: int):
         """The passes of a render: per eye path, the mean light not from the maps and the
@@ -528,15 +559,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         valid = dr.zeros(mi.Float, camera.width)
         start, self._paused = time.perf_counter(), 0.0
         for pass_index in range(self.passes):
-            if pass_index:
-                camera.advance()
-            # The memory guard, before the eye pass allocates anything.
-            waves = self.plan_waves(scene, camera.sensor, camera.spp)
-            clock = Stopwatch()
-            self._pass_seed = stream_seed(self.params.seed, seed, pass_index) & 0x7FFFFFFF
-            ray, weight = camera.rays()
-            eye = self.eye_pass(scene, camera.sampler, ray, weight, True,
-                                self.backend.emission_weight)
+            waves, eye, weight, clock = self._next_eye_pass(scene, camera, seed, pass_index)
             emitted += eye.emitted * weight
             valid += dr.select(eye.valid, camera.sign, 0.0)    # the filter's sign
             self._add_stats(time_eye=clock.lap(emitted, valid), cpu_eye=clock.cpu, passes=1)
@@ -561,6 +584,125 @@ class PhotonMapper(mi.SamplingIntegrator):
         done = max(terms[0].state.passes, 1)
         scale = dr.rcp(dr.opaque(mi.Float, done))
         return emitted * scale + _radiance(terms), valid * scale
+
+    def _next_eye_pass(self, scene, camera: CameraPass, seed: int, index: int):
+        """The eye paths of set ``index`` of a render's eye rays (a pass, or a set of a
+        split pass; the camera moves on to new rays after the first), with the memory
+        guard's waves planned before the eye pass allocates anything. Returns (waves, the
+        eye paths, the rays' weights, the clock started before the eye pass)."""
+        if index:
+            camera.advance()
+        waves = self.plan_waves(scene, camera.sensor, camera.spp)
+        clock = Stopwatch()
+        self._pass_seed = stream_seed(self.params.seed, seed, index) & 0x7FFFFFFF
+        ray, weight = camera.rays()
+        eye = self.eye_pass(scene, camera.sampler, ray, weight, True,
+                            self.backend.emission_weight)
+        return waves, eye, weight, clock
+
+    def _split_spp(self, scene, sensor, spp) -> tuple:
+        """(the render's samples per pixel, those of each set of eye samples traced at once
+        where a render of one pass splits them, else 0): ``samples_per_pass``, or where
+        that is not given, the most that fit beside the maps (:meth:`_fitting_split`). A
+        ValueError, before any work, where ``samples_per_pass`` does not divide spp (as for
+        Mitsuba's path)."""
+        total = int(spp) or scene_sensor(scene, sensor).sampler().sample_count()
+        split = self.samples_per_pass
+        if self.passes > 1:
+            return total, 0
+        if not split:
+            return total, self._fitting_split(scene, sensor, total)
+        if split >= total:
+            return total, 0
+        if total % split:
+            raise ValueError(f"spp = {total} must be a multiple of samples_per_pass = {split} "
+                             f"(the render traces its eye samples in passes of "
+                             f"samples_per_pass per pixel), as for Mitsuba's path")
+        return total, split
+
+    def _fitting_split(self, scene, sensor, total: int) -> int:
+        """Where the eye pass of ``total`` samples per pixel would not fit in the free memory
+        beside the maps (a wave of all of them, or of WAVE_BUDGET_BYTES), the most samples
+        per pixel, a divisor of ``total``, whose eye pass does (as Mitsuba's path splits its
+        samples into the passes it needs); 0 where all fit, where free memory cannot be
+        read, where not even one per pixel fits or the sets would hold fewer than
+        :data:`MIN_SET_SAMPLES` samples each (the memory guard then says what to lower: a
+        tiny film at a huge spp split into 10^5 sets of 64 samples would run for hours)
+        and under MPI (the processes of a render must split alike)."""
+        free = memory.available_bytes()
+        if free is None or self.backend.name != "local":
+            return 0
+        self._layers = self.layers()
+        owned = self.backend.owned_maps(self.map_count)
+        sizes = self._emitted_per_map()[owned]
+        depth, ratio, share = self._photon_depth(), self._stored_ratio(owned), \
+            self._batch_share()
+        maps = min(memory.wave_bytes(int(sizes.sum()), depth, ratio, share),
+                   max(memory.WAVE_BUDGET_BYTES,
+                       memory.wave_bytes(int(sizes.max()), depth, ratio, share)))
+        width, height, _ = self._eye_size(scene, sensor, total)
+        kept = self._eye_kept()
+        room = free - maps
+        if memory.eye_bytes(width, height, total, kept) <= room:
+            return 0
+        for split in range(total - 1, 0, -1):
+            if width * height * split < MIN_SET_SAMPLES:
+                break
+            if total % split == 0 and memory.eye_bytes(width, height, split, kept) <= room:
+                log.info("the eye pass of %d x %d at spp = %d (about %s) does not fit beside "
+                         "the maps in the %s free: its samples are traced in %d sets of %d "
+                         "per pixel (samples_per_pass sets them)", width, height, total,
+                         memory.size_text(memory.eye_bytes(width, height, total, kept)),
+                         memory.size_text(free), total // split, split)
+                return split
+        return 0
+
+    def _split_pass(self, scene, camera: CameraPass, seed: int, parts: int, develop: bool):
+        """A render of one pass whose eye samples are traced in ``parts`` sets of
+        ``samples_per_pass`` per pixel (Mitsuba's ``samples_per_pass``): the maps are traced
+        and built once and every set's eye paths are estimated against them, so the eye
+        pass holds one set at a time. Where the maps are held in several waves, each set
+        traces them again (the same photons: the streams do not depend on the set). Each
+        set is added to the film, which divides by the samples; returns the developed
+        image (with ``cancel()``, the image of the sets done)."""
+        self._layers = self.layers()
+        block = camera.block()
+        start, self._paused = time.perf_counter(), 0.0
+        beat = Heartbeat()
+        for part in range(parts):
+            terms = None                # the last set's per-sample sums, added to the film
+            waves, eye, weight, clock = self._next_eye_pass(scene, camera, seed, part)
+            emitted = eye.emitted * weight
+            valid = dr.select(eye.valid, camera.sign, 0.0)
+            self._add_stats(time_eye=clock.lap(emitted, valid), cpu_eye=clock.cpu)
+            terms = self.terms(self._layers, camera.width, scene)
+            before = dict(self.stats)
+            self._photon_pass(scene, terms, eye.points, camera.width, camera.sensor,
+                              camera.spp, seed, 0, waves, part)
+            if part:
+                # The same photons again: counted once.
+                for key, value in before.items():
+                    if key.endswith(("photons_stored", "photons_traced")) or \
+                            key == "segments":
+                        self.stats[key] = value
+            camera.put(block, emitted + _radiance(terms), valid)
+            dr.eval(block.tensor())
+            del eye, weight, emitted, valid
+            elapsed = beat.due()
+            if elapsed is not None or part + 1 == parts:
+                log.info("eye samples: %d of %d sets of %d per pixel done, %.1f s", part + 1,
+                         parts, camera.spp, time.perf_counter() - start)
+            if part + 1 < parts and self.backend.agree(
+                    self._cancelled or (self.stop_requested is not None and
+                                        bool(self.stop_requested()))):
+                self._stopped_by(False, True)
+                log.info("eye samples: stopped as asked after %d of %d sets", part + 1,
+                         parts)
+                break
+        self._add_stats(passes=1)
+        self._after_pass(0, terms, start, lambda: camera.finish(block))
+        self._finish(terms)
+        return camera.finish(block, develop)
 
     def eye_pass(self, scene, sampler, ray, weight, active, emission):
         """Phase 3: the eye paths of ``ray`` (throughput starting at ``weight``) to their
@@ -611,11 +753,13 @@ class PhotonMapper(mi.SamplingIntegrator):
             if self.store_on() == "diffuse" else "a non-delta BSDF"
 
     def _photon_pass(self, scene, terms, points, width: int, sensor=0, spp: int = 0,
-                     render_seed: int = 0, pass_index: int = 0, waves=None):
+                     render_seed: int = 0, pass_index: int = 0, waves=None, part: int = 0):
         """Phases 1, 2, 4 and 5 of one pass: wave after wave, trace and build the wave's maps
         of every layer and add every term's estimate over them; then one gather of all terms
         and every term's update. A term's sums over the waves are its sums over all maps
-        (eq. 2), so the waves change nothing but the memory held at once."""
+        (eq. 2), so the waves change nothing but the memory held at once. ``part`` > 0: a
+        later set of eye samples of the pass (:meth:`_split_pass`), estimated against the
+        maps its first set built where they are still held (one wave)."""
         if waves is None:
             waves = self.plan_waves(scene, sensor, spp)
         sums = None
@@ -629,17 +773,22 @@ class PhotonMapper(mi.SamplingIntegrator):
                 log.info("wave %d of %d: %s of %d", wave_index + 1, count,
                          _maps_text(wave), self.map_count)
             before = dict(self.stats)
+            # (one wave: the maps of the pass's first set are all its maps, still held)
+            held = part > 0 and len(waves) == 1 and \
+                all(layer.maps is not None for layer in self._layers)
             try:
                 for layer in self._layers:
-                    self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave,
-                                    self._planned_budget)
+                    if not held:
+                        self.build_maps(scene, layer, sensor, spp, render_seed, pass_index,
+                                        wave, self._planned_budget)
             except memory.MemoryGuardError:
                 if len(wave) == 1:
                     raise
                 queue[:0] = self._split_wave(scene, sensor, spp, wave, before)
                 wave_index -= 1
                 continue
-            if pass_index == 0 and wave_index == 0:
+            first = pass_index == 0 and part == 0
+            if first and wave_index == 0:
                 self.before_estimate()
             clock = Stopwatch()
             arrays = []
@@ -651,11 +800,11 @@ class PhotonMapper(mi.SamplingIntegrator):
                 dr.eval(sums)
                 for layer in self._layers:
                     layer.maps = None
-        if pass_index == 0:
+        if first:
             self._warn_if_empty(scene)
         self.stats["waves"] = wave_index + 1
         arrays = self.backend.allreduce(sums, self.stats)
-        if pass_index == 0:
+        if first:
             self._warn_if_none_found(terms, arrays, len(points))
         for j, term in enumerate(terms):
             term.state.update(arrays[2 * j], arrays[2 * j + 1])

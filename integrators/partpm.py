@@ -166,6 +166,13 @@ class PartPMIntegrator(PhotonMapper):
            in waves, each wave's maps freed before the next are traced, which bounds the
            memory of large photon counts; eq. (2) makes the image the same. 0: as many as
            fit the memory budget (at most 1.5 GiB of maps per wave, and what is free). (Default: 0)
+       * - samples_per_pass
+         - |int|
+         - As for Mitsuba's ``path``: a render of one pass traces its eye samples in sets of
+           this many per pixel (spp a multiple of it), each set estimated against the same
+           maps and added to the film, so that its eye pass holds one set at a time; unused
+           with passes > 1. Unset: all at once, or in the fewest sets that fit beside the
+           maps where they would not. (Default: unset)
        * - backend
          - |string|
          - ``local``: all maps in this process; ``mpi``: inside ``mpiexec -n P``, rank j

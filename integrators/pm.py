@@ -31,7 +31,8 @@ class PMIntegrator(PhotonMapper):
     ``k`` nearest photons, with r the distance to the k-th (eq. 1). Photon tracing, kd-tree
     and eye paths are those of ``partpm`` (both are :class:`~mi_partpm.integrators.common.
     PhotonMapper` s); it takes the same props (``max_depth``, ``rr_depth``, ``seed``,
-    ``direct``, ``hide_emitters``, ``kernel``, ``glossy``, ``glossy_samples``) except those
+    ``direct``, ``hide_emitters``, ``kernel``, ``glossy``, ``glossy_samples``,
+    ``samples_per_pass``) except those
     of partitioned, progressive or caustic maps (``map_count``, ``radius``,
     ``radius_fraction``, ``backend``, ``passes``, ``alpha``, ``time_limit``,
     ``caustic_*``, ``final_gather``: one map, one pass, in this process), and adds:

@@ -162,6 +162,12 @@ class CameraPass:
         the filter; ``value`` and ``alpha`` then carry the filter signs, and the weight is
         their mean); return the developed image (or an empty tensor). The film is cleared
         first, so this can be called after any pass (a checkpoint)."""
+        block = self.block()
+        self.put(block, value, alpha)
+        return self.finish(block, develop)
+
+    def block(self):
+        """An empty image block of the film, for :meth:`put` (the film is cleared)."""
         film = self.film
         film.prepare(self.aovs)
         block = film.create_block()
@@ -170,6 +176,13 @@ class CameraPass:
                                   rfilter=self.pixel_filter)
         block.set_offset(film.crop_offset())
         block.set_coalesce(block.coalesce() and self.spp >= 4)
+        return block
+
+    def put(self, block, value, alpha):
+        """Add one ``value`` and ``alpha`` per sample of the last set of rays to ``block``
+        (blocks of several sets of rays, each drawn after :meth:`advance`, add up: the
+        film divides by the weights)."""
+        film = self.film
         if mi.is_spectral:
             raise ValueError("spectral variants are not supported")
         rgb = mi.Color3f(value.x) if mi.is_monochromatic else value
@@ -182,6 +195,12 @@ class CameraPass:
             channels.append(self.sign_sum * dr.rcp(dr.opaque(mi.Float, max(self.drawn, 1))))
         box = film.rfilter().is_box_filter() or self.offsets is not None
         block.put(self.pixel if box else self.sample_pos, channels, mi.Bool(True))
+
+    def finish(self, block, develop: bool = True):
+        """The film holding ``block`` alone (it is cleared first, so this may be called more
+        than once), developed (or an empty tensor)."""
+        film = self.film
+        film.prepare(self.aovs)
         film.put_block(block)
         if develop:
             image = film.develop()

@@ -1054,6 +1054,15 @@ def test_a_group_that_is_not_a_table_is_named(tmp_path, text):
     (lambda meta, z: meta["files"].update({"0" + next(iter(meta["files"])):
                                            next(iter(meta["files"].values()))}),
      r"files lists n = 1 twice \(as '1' and '01'\)"),
+    # Arrays that are not numbers: a raw numpy error (or one naming no file) before.
+    (lambda meta, z: z.update(map_bytes=np.array(["a"] * len(z["map_bytes"]))),
+     r"map_bytes must hold integers or floats .*got dtype <U1"),
+    (lambda meta, z: z.update(map_bytes=z["map_bytes"] + 0j),
+     r"map_bytes must hold integers or floats .*got dtype complex128"),
+    (lambda meta, z: z.update(map_photons=z["map_photons"] > 0),
+     r"map_photons must hold integers or floats .*got dtype bool"),
+    (lambda meta, z: z.update(map_bytes=np.array([{}] * len(z["map_bytes"]))),
+     r"n1.npz: map_bytes is an array of Python objects"),
 ])
 def test_a_broken_workload_names_the_file_and_the_fault(tmp_path, change, message):
     import json
@@ -1222,3 +1231,65 @@ def test_first_fit_residency_can_read_more_from_dram_with_more_sram():
         "sram_bytes": sram, "dram_bytes_per_cycle": 0.5}), w) for sram in (4000, 5000)}
     assert runs[5000].dram_bytes.sum() == pytest.approx(2 * runs[4000].dram_bytes.sum())
     assert runs[5000].frame_cycles > runs[4000].frame_cycles
+
+
+def _without_times(d, ns=None):
+    """Workloads ``d`` with no measured times (R = 0, as a synthetic workload may be), and
+    only the n of ``ns`` (default all)."""
+    meta = json.loads((d / "meta.json").read_text())
+    for n_text, name in list(meta["files"].items()):
+        if ns is not None and int(n_text) not in ns:
+            del meta["files"][n_text]
+            continue
+        with np.load(d / name) as f:
+            z = dict(f)
+        z["map_seconds"] = np.zeros((z["map_seconds"].shape[0], 0))
+        np.savez(d / name, **z)
+    (d / "meta.json").write_text(json.dumps(meta))
+    return d
+
+
+def test_check_without_measured_times_is_refused_before_any_simulation(tmp_path, capsys):
+    """--check fits costs to the workloads' measured times and checks them on another's:
+    where either has none (R = 0) it is refused at once, naming which (it ran the whole
+    report and then failed naming neither, or was dropped in silence); without --check,
+    the report says that it could not calibrate."""
+    from mi_partpm.cli import main
+    from hwsim.report import run_report
+    timed = str(_synthetic_dir(tmp_path / "a"))
+    untimed = str(_without_times(_synthetic_dir(tmp_path / "b")))
+    assert main(["hwsim", timed, "--check", untimed, "--out", str(tmp_path / "o1")]) == 2
+    err = capsys.readouterr().err
+    assert f"check: {untimed} (n = 1) has no measured map_seconds" in err
+    assert not (tmp_path / "o1").exists()
+    assert main(["hwsim", untimed, "--check", timed, "--out", str(tmp_path / "o2")]) == 2
+    assert "check: the workloads have no measured map_seconds" in capsys.readouterr().err
+    result = run_report(untimed, GOLDEN_CONFIG, tmp_path / "o3")
+    assert "no measured map_seconds" in result["calibration"]["skipped"]
+
+
+def test_a_frame_of_zero_cycles_and_no_n_1_are_said_not_crashed_on(tmp_path):
+    """A config that charges nothing for what a workload does (a frame of 0 cycles, the
+    speedups' denominator) is refused naming the actions to cost (a ZeroDivisionError
+    traceback before); without n = 1 the replicated traversal is null in report.json, which
+    stays strict JSON (a bare NaN before), and n/a in the table."""
+    from hwsim.report import format_report, run_report
+    d = _synthetic_dir(tmp_path)
+    free = HardwareConfig().with_(cycles_per_node=0, cycles_per_test=0,
+                                  cycles_per_accumulate=1, cycles_per_map=0,
+                                  memory={"sram_bytes": 10 ** 9})
+    meta = json.loads((d / "meta.json").read_text())
+    for name in meta["files"].values():
+        with np.load(d / name) as f:
+            z = dict(f)
+        z["photons_found"] = 0 * z["photons_found"]
+        np.savez(d / name, **z)
+    with pytest.raises(ValueError, match=r"the frame of n = 1 takes 0 cycles: .* give those "
+                                         r"actions a cost"):
+        run_report(d, free, tmp_path / "o1")
+    d2 = _without_times(_synthetic_dir(tmp_path / "b"), ns=(2, 4))
+    result = run_report(d2, GOLDEN_CONFIG, tmp_path / "o2")
+    text = (tmp_path / "o2" / "report.json").read_text()
+    json.loads(text, parse_constant=lambda c: pytest.fail(f"report.json holds {c}"))
+    assert result["rows"][0]["replicated_traversal"] is None
+    assert "n/a" in format_report(result)

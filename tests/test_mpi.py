@@ -239,6 +239,18 @@ def test_ranks_given_different_arguments_are_refused(tmp_path):
     assert "--resolution 12x12" in done.stderr
 
 
+def test_an_experiment_under_mpiexec_is_refused_before_it_runs(tmp_path):
+    """Only a render splits its work over the ranks: partpm compare under mpiexec ran whole
+    on every rank, both writing the same files and printing the table twice."""
+    done = _mpi(2, "-m", "mi_partpm.cli", "compare", "cornell_box", "--maps", "2",
+                "--photons", "2000", "--resolution", "8x8", "--spp", "1", "--reference-spp",
+                "4", "--no-best", "--out", str(tmp_path / "c"), timeout=120)
+    assert done.returncode == 2
+    assert "'partpm compare' runs in one process: under mpiexec every one of the 2 ranks " \
+        "would run it whole" in done.stderr
+    assert not (tmp_path / "c").exists()
+
+
 def test_mpiexec_with_the_local_backend_is_refused_and_one_rank_is_warned(tmp_path):
     """Under mpiexec with the local backend every rank would render and write the whole
     image; --backend mpi outside mpiexec is a job of one rank, which works but is said."""
@@ -469,11 +481,13 @@ def test_render_prediction_from_one_rank_by_hand():
 
 @pytest.mark.parametrize("case, said", [
     ("seed", "the ranks of the MPI job render different things (seed: rank 0 0, rank 1 1)"),
-    ("film", "film size: rank 0 (16, 16), rank 1 (16, 12)")])
+    ("film", "film size: rank 0 (16, 16), rank 1 (16, 12)"),
+    ("light", "the ranks of the MPI job render different things (scene content: rank 0")])
 def test_ranks_that_render_different_things_are_refused(case, said):
     """Ranks whose eye paths differ cannot add up their partial images: another seed on one
     rank gave a silent blend of two images (65 of 256 pixels off by more than half), another
-    film size a crash inside MPI's reduction ('Message truncated'). Both are now refused
+    film size a crash inside MPI's reduction ('Message truncated'), another copy of the
+    scene file with a light 4 times brighter an image between the two. All are now refused
     before any photon is traced, with what differs."""
     done = _mpi(2, str(HERE / "mpi_scripts" / "job_checks.py"), case, timeout=120)
     assert done.returncode != 0

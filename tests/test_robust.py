@@ -87,6 +87,21 @@ def test_cli_bad_scene_files(tmp_path, capsys, xml, message):
     assert __import__("re").search(message, err[-1]), err[-1]
 
 
+@pytest.mark.parametrize("xml", ['<scene version="3.0.0"><shape type="sphere"/>',
+                                 '<scene version="3.0.0"><sensor type="perspective">'])
+def test_a_broken_scene_file_is_said_to_be_broken_with_resolution_too(tmp_path, capsys,
+                                                                       xml):
+    """A file that is not well-formed XML hid its sensor and its $resx from the checks
+    made when --resolution sets them (partpm scaling always does): it was said to have no
+    sensor, or not to take $resy. It is said not to parse, where."""
+    path = tmp_path / "scene.xml"
+    path.write_text(xml)
+    assert main(["render", str(path), "--resolution", "8x8", "-o",
+                 str(tmp_path / "x.exr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "is not well-formed XML (no element found: line 1" in err, err
+
+
 @pytest.mark.parametrize("integrator", ["path", "partpm"])
 def test_cli_refuses_a_sample_count_of_0_for_any_integrator(tmp_path, capsys, integrator):
     path = tmp_path / "scene.xml"

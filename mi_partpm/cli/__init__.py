@@ -69,10 +69,18 @@ def _main(argv, comm=None) -> int:
     logging.basicConfig(level=logging.ERROR if rank else logging.WARNING
                         if getattr(args, "quiet", False) else logging.INFO,
                         format="%(message)s", stream=sys.stderr)
+    from ..backends import launcher_ranks
     from .common import MADE_FOLDERS, remove_made_folders
     MADE_FOLDERS.clear()
     code = 1
     try:
+        if args.command != "render" and launcher_ranks() > 1:
+            # Only a render splits its work over the ranks: any other command would run
+            # whole on every rank, each writing the same files.
+            raise UsageError(f"'partpm {args.command}' runs in one process: under mpiexec "
+                             f"every one of the {launcher_ranks()} ranks would run it whole "
+                             f"and write the same files; run it without mpiexec (partpm "
+                             f"scaling starts its own MPI jobs)")
         code = COMMANDS[args.command](args)
         return code
     except BrokenPipeError:

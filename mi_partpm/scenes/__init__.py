@@ -52,11 +52,12 @@ def _resolve(name: str, main: Path, including: Path) -> Optional[Path]:
     return None
 
 
-def scene_files(path) -> list:
+def scene_files(path, errors: Optional[list] = None) -> list:
     """``(file, text, root element)`` of a scene file and of every file it includes
     (``<include filename="..."/>``, found as Mitsuba finds it: :func:`_resolve`), in
     document order, each once; a file that cannot be read or parsed is left out
-    (Mitsuba's loader then says what is wrong with it)."""
+    (Mitsuba's loader then says what is wrong with it), and added to ``errors`` as
+    ``(file, what is wrong)``."""
     import xml.etree.ElementTree as ElementTree
     found, seen = [], set()
     main = Path(path).resolve()
@@ -69,7 +70,9 @@ def scene_files(path) -> list:
         try:
             text = file.read_text(errors="replace")
             root = ElementTree.fromstring(text)
-        except (OSError, ValueError, ElementTree.ParseError):
+        except (OSError, ValueError, ElementTree.ParseError) as e:
+            if errors is not None:
+                errors.append((file, getattr(e, "strerror", None) or str(e)))
             return
         found.append((file, text, root))
         for element in root.iter("include"):
@@ -186,21 +189,31 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
     if spp is not None:
         params["spp"] = int(spp)
     # The file and the files it includes: a sensor or a $name may be in either.
-    files = scene_files(path)
+    unread = []
+    files = scene_files(path, unread)
     text = "".join(t for _, t, _ in files) if files else path.read_text(errors="replace")
+
+    def refuse(message: str):
+        # A file that does not parse hides its sensor and its $names: say that instead
+        # (a broken tag read as "has no sensor").
+        if unread:
+            file, what = unread[0]
+            raise ValueError(f"could not load scene {str(path)!r}: {str(file)!r} is not "
+                             f"well-formed XML ({what})")
+        raise ValueError(message)
     if ("resx" in params or "spp" in params) and "<sensor" not in text and \
             "<include" not in text:
-        raise ValueError(f"scene file {str(path)!r} has no sensor: add a camera to render it")
+        refuse(f"scene file {str(path)!r} has no sensor: add a camera to render it")
     for name in params:
         if not re.search(rf"\${re.escape(name)}(?!\w)", text):   # $sp is not $spp's
             option = {"resx": "the resolution (--resolution)", "resy": "the resolution "
                       "(--resolution)", "spp": "the sample count (--spp)"}.get(name)
             if option is None:          # a parameter of the caller's (-D NAME=VALUE)
-                raise ValueError(
+                refuse(
                     f"scene file {str(path)!r} does not take ${name} (no \"${name}\" in it "
                     f"or the files it includes), so it cannot be set (load_scene's {name}=, "
                     f"render's -D {name}=...)")
-            raise ValueError(
+            refuse(
                 f"scene file {str(path)!r} does not take ${name}, so {option} cannot be set: "
                 f"use value=\"${name}\" in it (with <default name=\"{name}\" .../>), or with "
                 f"'partpm render' leave the option out (the experiment commands always set it)")

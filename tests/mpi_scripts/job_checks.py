@@ -4,6 +4,7 @@ lines it prints on rank 0):
 - ``seed``: rank 1 renders with another seed than rank 0 (a user's ``seed=comm.rank``):
   their eye paths would differ, and the job must refuse it instead of adding them up;
 - ``film``: rank 1 renders a film of another size;
+- ``light``: rank 1's scene has a light 4 times brighter (another copy of a scene file);
 - ``cancel``: both ranks' ``on_pass`` call ``cancel()`` after the third pass of 50: every
   rank must stop after that pass, as a local render does;
 - ``totals``: the stats of a render with caustic maps, whose top level must be the whole
@@ -28,6 +29,11 @@ if case == "cancel":
     props["passes"] = 50
 if case == "totals":
     props.update(caustic_photon_count=4000, passes=2)
+if case == "light" and rank == 1:
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("emitter.radiance.value"))
+    params[key] = params[key] * 4
+    params.update()
 integrator = mi.load_dict(props)
 if case == "cancel":
     def on_pass(info):
