@@ -309,9 +309,9 @@ def _per_n(config, loads):
                      # (None without n = 1: report.json stays strict JSON)
                      "replicated_traversal": (r.nodes_visited / base_nodes
                                               if base_nodes else None)})
-        if r.frame_cycles <= 0:
-            raise ValueError(f"the frame of n = {n} takes 0 cycles: the config charges "
-                             f"nothing for what this workload does (its queries visit "
+        if r.frame_cycles <= 0 or r.compute_cycles <= 0:
+            raise ValueError(f"the frame of n = {n} takes 0 cycles of compute: the config "
+                             f"charges nothing for what this workload does (its queries visit "
                              f"{int(loads[n].nodes_visited.sum()):,} nodes, test "
                              f"{int(loads[n].photons_tested.sum()):,} photons and find "
                              f"{int(loads[n].photons_found.sum()):,}): give those actions a "

@@ -72,8 +72,12 @@ def _scene_digest(scene) -> str:
     the same files may lie in other folders on other machines."""
     import hashlib
     import re
-    text = "\n".join(str(o) for o in list(scene.emitters()) + list(scene.shapes()))
-    text = re.sub(r"0x[0-9a-fA-F]+", "", re.sub(r"[^\s\"'\[\],=]*[/\\]", "", text))
+    def clean(text: str) -> str:
+        return re.sub(r"0x[0-9a-fA-F]+", "", re.sub(r"[^\s\"'\[\],=]*[/\\]", "", text))
+    # Sorted: Mitsuba 3.9 lists a scene's shapes and emitters in another order from one load
+    # of the same file to the next (4 orders of the Cornell box in 40 loads).
+    text = "\n".join(sorted(clean(str(o)) for o in
+                            list(scene.emitters()) + list(scene.shapes())))
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
@@ -516,16 +520,13 @@ class PhotonMapper(mi.SamplingIntegrator):
             seed = _as_int(seed)
             self.radius = self.search_radius(scene)
             self._start_stats(seed)
-            total, split = self._split_spp(scene, sensor, spp)
-            camera = CameraPass(scene, sensor, seed, split or spp, self.aov_names(),
-                                self.passes > 1)
+            camera = CameraPass(scene, sensor, seed, spp, self.aov_names(), self.passes > 1)
+            split = self._split_spp(scene, camera.sensor, camera.spp)
+            if split:
+                camera.split(split)
             self.backend.check_same(self._settings(scene, camera, seed))
             if split:
-                try:
-                    image = self._split_pass(scene, camera, seed, total // split, develop)
-                finally:
-                    # The sensor's sampler keeps the render's spp, as after Mitsuba's render.
-                    camera.sampler.set_sample_count(total)
+                image = self._split_pass(scene, camera, seed, develop)
             else:
                 L, alpha = self._passes(scene, camera, seed)
                 image = camera.develop(L, alpha, develop)
@@ -600,29 +601,29 @@ class PhotonMapper(mi.SamplingIntegrator):
                             self.backend.emission_weight)
         return waves, eye, weight, clock
 
-    def _split_spp(self, scene, sensor, spp) -> tuple:
-        """(the render's samples per pixel, those of each set of eye samples traced at once
-        where a render of one pass splits them, else 0): ``samples_per_pass``, or where
-        that is not given, the most that fit beside the maps (:meth:`_fitting_split`). A
-        ValueError, before any work, where ``samples_per_pass`` does not divide spp (as for
-        Mitsuba's path)."""
-        total = int(spp) or scene_sensor(scene, sensor).sampler().sample_count()
+    def _split_spp(self, scene, sensor, total: int) -> int:
+        """The samples per pixel of each set of eye samples traced at once where a render of
+        one pass at ``total`` spp (its sampler's) splits them, else 0: ``samples_per_pass``,
+        or where that is not given, the most that fit beside the maps
+        (:meth:`_fitting_split`). A ValueError, before any work, where ``samples_per_pass``
+        does not divide spp (as for Mitsuba's path)."""
         split = self.samples_per_pass
         if self.passes > 1:
-            return total, 0
+            return 0
         if not split:
-            return total, self._fitting_split(scene, sensor, total)
+            return self._fitting_split(scene, sensor, total)
         if split >= total:
-            return total, 0
+            return 0
         if total % split:
             raise ValueError(f"spp = {total} must be a multiple of samples_per_pass = {split} "
                              f"(the render traces its eye samples in passes of "
                              f"samples_per_pass per pixel), as for Mitsuba's path")
-        return total, split
+        return split
 
     def _fitting_split(self, scene, sensor, total: int) -> int:
         """Where the eye pass of ``total`` samples per pixel would not fit in the free memory
-        beside the maps (a wave of all of them, or of WAVE_BUDGET_BYTES), the most samples
+        beside the maps (their largest wave as planned: ``maps_per_wave`` maps, or all of
+        them within the wave budget, ``wave_bytes`` or WAVE_BUDGET_BYTES), the most samples
         per pixel, a divisor of ``total``, whose eye pass does (as Mitsuba's path splits its
         samples into the passes it needs); 0 where all fit, where free memory cannot be
         read, where not even one per pixel fits or the sets would hold fewer than
@@ -637,15 +638,21 @@ class PhotonMapper(mi.SamplingIntegrator):
         sizes = self._emitted_per_map()[owned]
         depth, ratio, share = self._photon_depth(), self._stored_ratio(owned), \
             self._batch_share()
-        maps = min(memory.wave_bytes(int(sizes.sum()), depth, ratio, share),
-                   max(memory.WAVE_BUDGET_BYTES,
-                       memory.wave_bytes(int(sizes.max()), depth, ratio, share)))
+        if self.maps_per_wave > 0:
+            largest = np.sort(sizes)[::-1][:self.maps_per_wave]
+            maps = memory.wave_bytes(int(largest.sum()), depth, ratio, share)
+        else:
+            budget = memory.WAVE_BUDGET_BYTES if self.wave_bytes is None else self.wave_bytes
+            maps = min(memory.wave_bytes(int(sizes.sum()), depth, ratio, share),
+                       max(budget, memory.wave_bytes(int(sizes.max()), depth, ratio, share)))
         width, height, _ = self._eye_size(scene, sensor, total)
         kept = self._eye_kept()
         room = free - maps
         if memory.eye_bytes(width, height, total, kept) <= room:
             return 0
-        for split in range(total - 1, 0, -1):
+        # (from the most samples per pixel that could fit: a 1 x 1 film at 10^9 spp)
+        most = room // max(memory.eye_bytes(width, height, 1, kept), 1)
+        for split in range(int(min(total - 1, most)), 0, -1):
             if width * height * split < MIN_SET_SAMPLES:
                 break
             if total % split == 0 and memory.eye_bytes(width, height, split, kept) <= room:
@@ -657,14 +664,15 @@ class PhotonMapper(mi.SamplingIntegrator):
                 return split
         return 0
 
-    def _split_pass(self, scene, camera: CameraPass, seed: int, parts: int, develop: bool):
-        """A render of one pass whose eye samples are traced in ``parts`` sets of
-        ``samples_per_pass`` per pixel (Mitsuba's ``samples_per_pass``): the maps are traced
-        and built once and every set's eye paths are estimated against them, so the eye
-        pass holds one set at a time. Where the maps are held in several waves, each set
-        traces them again (the same photons: the streams do not depend on the set). Each
-        set is added to the film, which divides by the samples; returns the developed
-        image (with ``cancel()``, the image of the sets done)."""
+    def _split_pass(self, scene, camera: CameraPass, seed: int, develop: bool):
+        """A render of one pass whose eye samples are traced in the camera's sets
+        (:meth:`CameraPass.split`: ``samples_per_pass``, or the sets that fit): the maps
+        are traced and built once and every set's eye paths are estimated against them, so
+        the eye pass holds one set at a time. Where the maps are held in several waves,
+        each set traces them again (the same photons: the streams do not depend on the
+        set). Each set is added to the film, which divides by the samples; returns the
+        developed image (with ``cancel()``, the image of the sets done)."""
+        parts = camera.sets
         self._layers = self.layers()
         block = camera.block()
         start, self._paused = time.perf_counter(), 0.0
@@ -1010,6 +1018,7 @@ class PhotonMapper(mi.SamplingIntegrator):
         width = dr.width(ray.o)
         self.radius = self.search_radius(scene)
         self._start_stats(render_seed)
+        self._pass_seed = stream_seed(self.params.seed, render_seed, 0) & 0x7FFFFFFF
         eye = self.eye_pass(scene, sampler, ray, None, active, 1.0)
         self._layers = self.layers()
         terms = self.terms(self._layers, width, scene)

@@ -388,7 +388,10 @@ class PartPMIntegrator(PhotonMapper):
             check_schedule(self.radius, self.alpha, pass_index + 1)
         p = self.params
         return final_gather(scene, maps, points, width, self.final_gather, radius,
-                            seed=stream_seed(p.seed, 0, pass_index), max_depth=p.max_depth,
+                            # (the eye rays' own stream: another per render seed, pass and
+                            # set of eye samples, or the sets would share their gather rays)
+                            seed=stream_seed(self._pass_seed, 0, pass_index),
+                            max_depth=p.max_depth,
                             kernel=p.kernel,
                             caustics=self.caustic_photon_count == 0 and self.wave_index == 0
                             and self.backend.is_root,

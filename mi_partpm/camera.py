@@ -67,6 +67,7 @@ class CameraPass:
         border = rfilter.border_size() if self.film.sample_border() and \
             self.offsets is None else 0
         film_size += 2 * border
+        self._film_size, self._border = film_size, border
         self.width = int(film_size[0] * film_size[1] * self.spp)
         if self.width > MAX_WAVEFRONT:
             raise ValueError(f"the film ({film_size[0]} x {film_size[1]}) at spp = {self.spp} "
@@ -74,9 +75,23 @@ class CameraPass:
                              f"holds: lower spp or the resolution")
         self.aovs = list(aovs)
         self.film.prepare(self.aovs)
-        self.sampler.set_samples_per_wavefront(self.spp)
         self.seed = int(seed)
-        self.sampler.seed(seed, self.width)
+        #: Sets of eye samples the render traces one after the other (:meth:`split`).
+        self.sets = 1
+        self.diff_scale = float(np.float32(1) / np.sqrt(np.float32(self.spp)))
+        self._wavefront()
+        self.sample_pos = None
+        self.sign = mi.Float(1.0)          # this pass's sample weights (filter signs)
+        self.sign_sum = mi.Float(0.0)      # their sum over the passes drawn so far
+        self.drawn = 0
+
+    def _wavefront(self):
+        """Seed the sampler for a wavefront of ``spp`` samples per pixel and find each
+        sample's pixel (samples of a pixel next to each other)."""
+        film_size, border = self._film_size, self._border
+        self.width = int(film_size[0] * film_size[1] * self.spp)
+        self.sampler.set_samples_per_wavefront(self.spp)
+        self.sampler.seed(self.seed, self.width)
         idx = dr.arange(mi.UInt32, self.width)
         log_spp = int(np.log2(self.spp)) if self.spp > 0 else 0
         if (1 << log_spp) == self.spp:
@@ -90,11 +105,16 @@ class CameraPass:
             pos -= border
         pos += mi.Vector2i(self.film.crop_offset())
         self.pixel = mi.Vector2f(pos)
-        self.diff_scale = float(np.float32(1) / np.sqrt(np.float32(self.spp)))
-        self.sample_pos = None
-        self.sign = mi.Float(1.0)          # this pass's sample weights (filter signs)
-        self.sign_sum = mi.Float(0.0)      # their sum over the passes drawn so far
-        self.drawn = 0
+
+    def split(self, per_set: int):
+        """Trace the samples in sets of ``per_set`` per pixel (a divisor of spp), as
+        Mitsuba's render does with ``samples_per_pass``: the sampler keeps the render's
+        sample count (a stratified one spans all of it), each set is a wavefront of its own
+        and :meth:`advance` moves the sampler on to the next set's samples. ``spp`` is then
+        the samples per pixel of one set; ray differentials stay scaled for the render's."""
+        self.sets = self.spp // per_set
+        self.spp = per_set
+        self._wavefront()
 
     def rays(self):
         """This pass's eye rays: ``(ray, weight)``, one per sample (the sampler's state moves
@@ -151,7 +171,13 @@ class CameraPass:
     def advance(self):
         """On to the next set of samples (a new pass): the sampler seeded anew from the
         render's seed and the pass. Advancing it past its sample count hung Mitsuba's
-        stratified and multijitter samplers (at a count that is not a power of two)."""
+        stratified and multijitter samplers (at a count that is not a power of two). The
+        sets of a :meth:`split` render lie within it: the sampler advances, as in Mitsuba's
+        render."""
+        if self.sets > 1:
+            self.sampler.advance()
+            self.sampler.schedule_state()
+            return
         seed = (self.seed * 0x9E3779B1 + self.drawn * 0x85EBCA77) & 0xFFFFFFFF
         self.sampler.seed(seed, self.width)
         self.sampler.schedule_state()

@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 import resource
 import sys
+import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Optional, Sequence
@@ -114,9 +115,9 @@ def share_memory(processes: int):
     _SHARERS = max(1, int(processes))
 
 
-#: This process's resident bytes when its outermost render began (:func:`render_memory`);
-#: None outside a render.
-_RENDER_START: Optional[int] = None
+#: Per thread, this process's resident bytes when the thread's render began
+#: (:func:`render_memory`); unset outside a render.
+_RENDER_START = threading.local()
 
 
 @contextmanager
@@ -125,24 +126,24 @@ def render_memory():
     after the eye pass (while a wave is traced, a wave planned again, the next pass's plan)
     compare the whole render's bytes with what is free, and ``MemAvailable`` had already
     lost what the render holds: a 1920 x 1080 x 16 render that fitted its plan was refused
-    once its eye pass had run. Nested renders (a wrapper's) keep the outermost start."""
-    global _RENDER_START
-    outermost = _RENDER_START is None
-    if outermost:
-        _RENDER_START = _proc_bytes("/proc/self/status", "VmRSS")
+    once its eye pass had run. Per thread; a render made within another (in ``on_pass``)
+    counts from its own start, not the outer render's memory, which it cannot use."""
+    outer = getattr(_RENDER_START, "bytes", None)
+    _RENDER_START.bytes = _proc_bytes("/proc/self/status", "VmRSS")
     try:
         yield
     finally:
-        if outermost:
-            _RENDER_START = None
+        _RENDER_START.bytes = outer
 
 
 def _held_by_render() -> int:
-    """Resident bytes this process gained since its render began (0 outside one)."""
-    if _RENDER_START is None:
+    """Resident bytes this process gained since this thread's render began (0 outside
+    one)."""
+    start = getattr(_RENDER_START, "bytes", None)
+    if start is None:
         return 0
     now = _proc_bytes("/proc/self/status", "VmRSS")
-    return 0 if now is None else max(0, now - _RENDER_START)
+    return 0 if now is None else max(0, now - start)
 
 
 def available_bytes() -> Optional[int]:

@@ -627,8 +627,8 @@ def adjoint_correction(si, wi, wo):
     and 0 where either lies on different sides of the geometric and the shading surface (a
     light leak). Exactly 1 where the shading normal is the geometric one. Without it, on a
     box with smooth vertex normals the light that bounced off it came out up to 1.18 of
-    path's (a box of six faces in a scene written elsewhere); Mitsuba gives smooth normals to every OBJ and PLY mesh
-    without normals of its own unless ``face_normals`` is set."""
+    path's (a box of six faces in a scene written elsewhere); Mitsuba gives smooth normals
+    to every OBJ and PLY mesh without normals of its own unless ``face_normals`` is set."""
     wi_g, wo_g = dr.dot(wi, si.n), dr.dot(wo, si.n)
     wi_s, wo_s = dr.dot(wi, si.sh_frame.n), dr.dot(wo, si.sh_frame.n)
     factor = dr.abs(wi_s * wo_g) / dr.abs(wi_g * wo_s)

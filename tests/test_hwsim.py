@@ -1269,8 +1269,8 @@ def test_check_without_measured_times_is_refused_before_any_simulation(tmp_path,
 
 
 def test_a_frame_of_zero_cycles_and_no_n_1_are_said_not_crashed_on(tmp_path):
-    """A config that charges nothing for what a workload does (a frame of 0 cycles, the
-    speedups' denominator) is refused naming the actions to cost (a ZeroDivisionError
+    """A config that charges nothing for what a workload does (a frame of 0 cycles of
+    compute, the speedups' denominator) is refused naming the actions to cost (a ZeroDivisionError
     traceback before); without n = 1 the replicated traversal is null in report.json, which
     stays strict JSON (a bare NaN before), and n/a in the table."""
     from hwsim.report import format_report, run_report
@@ -1278,15 +1278,21 @@ def test_a_frame_of_zero_cycles_and_no_n_1_are_said_not_crashed_on(tmp_path):
     free = HardwareConfig().with_(cycles_per_node=0, cycles_per_test=0,
                                   cycles_per_accumulate=1, cycles_per_map=0,
                                   memory={"sram_bytes": 10 ** 9})
-    meta = json.loads((d / "meta.json").read_text())
-    for name in meta["files"].values():
-        with np.load(d / name) as f:
-            z = dict(f)
-        z["photons_found"] = 0 * z["photons_found"]
-        np.savez(d / name, **z)
-    with pytest.raises(ValueError, match=r"the frame of n = 1 takes 0 cycles: .* give those "
-                                         r"actions a cost"):
-        run_report(d, free, tmp_path / "o1")
+    def find_nothing(d):
+        meta = json.loads((d / "meta.json").read_text())
+        for name in meta["files"].values():
+            with np.load(d / name) as f:
+                z = dict(f)
+            z["photons_found"] = 0 * z["photons_found"]
+            np.savez(d / name, **z)
+        return d
+    with pytest.raises(ValueError, match=r"the frame of n = 1 takes 0 cycles of compute: .* "
+                                         r"give those actions a cost"):
+        run_report(find_nothing(d), free, tmp_path / "o1")
+    # Without n = 1 the frame has its gather's cycles, and the compute's 0 divided.
+    d3 = find_nothing(_without_times(_synthetic_dir(tmp_path / "c"), ns=(2, 4)))
+    with pytest.raises(ValueError, match=r"the frame of n = 2 takes 0 cycles of compute"):
+        run_report(d3, free, tmp_path / "o3")
     d2 = _without_times(_synthetic_dir(tmp_path / "b"), ns=(2, 4))
     result = run_report(d2, GOLDEN_CONFIG, tmp_path / "o2")
     text = (tmp_path / "o2" / "report.json").read_text()

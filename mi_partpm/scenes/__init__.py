@@ -18,6 +18,7 @@ filled in from the package's data (or ``data_dir`` / ``$PARTPM_DATA``) unless gi
 from __future__ import annotations
 
 import logging
+import os
 import re
 from pathlib import Path
 from typing import Optional, Tuple
@@ -198,8 +199,10 @@ def load_scene(scene: str, resolution: Optional[Tuple[int, int]] = None,
         # (a broken tag read as "has no sensor").
         if unread:
             file, what = unread[0]
-            raise ValueError(f"could not load scene {str(path)!r}: {str(file)!r} is not "
-                             f"well-formed XML ({what})")
+            fault = "cannot be read" if not Path(file).is_file() or \
+                not os.access(file, os.R_OK) else "is not well-formed XML"
+            raise ValueError(f"could not load scene {str(path)!r}: {str(file)!r} {fault} "
+                             f"({what})")
         raise ValueError(message)
     if ("resx" in params or "spp" in params) and "<sensor" not in text and \
             "<include" not in text:
