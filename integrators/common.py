@@ -24,7 +24,9 @@ object chosen once in the constructor; the phases never ask which one it is.
 """
 from __future__ import annotations
 
+import hashlib
 import logging
+import re
 import threading
 import time
 from contextlib import contextmanager
@@ -70,8 +72,6 @@ def _scene_digest(scene) -> str:
     loaded another copy of a scene file, with its light 4 times brighter, gave an image
     between the two in silence. Folders in file names and object addresses are left out:
     the same files may lie in other folders on other machines."""
-    import hashlib
-    import re
     def clean(text: str) -> str:
         return re.sub(r"0x[0-9a-fA-F]+", "", re.sub(r"[^\s\"'\[\],=]*[/\\]", "", text))
     # Sorted: Mitsuba 3.9 lists a scene's shapes and emitters in another order from one load
@@ -525,11 +525,8 @@ class PhotonMapper(mi.SamplingIntegrator):
             if split:
                 camera.split(split)
             self.backend.check_same(self._settings(scene, camera, seed))
-            if split:
-                image = self._split_pass(scene, camera, seed, develop)
-            else:
-                L, alpha = self._passes(scene, camera, seed)
-                image = camera.develop(L, alpha, develop)
+            image = self._split_pass(scene, camera, seed, develop) if split else \
+                camera.develop(*self._passes(scene, camera, seed), develop)
             if evaluate:
                 dr.eval(image)
             self.stats["peak_memory_bytes"] = memory.peak_rss_bytes()
@@ -607,9 +604,9 @@ class PhotonMapper(mi.SamplingIntegrator):
         or where that is not given, the most that fit beside the maps
         (:meth:`_fitting_split`). A ValueError, before any work, where ``samples_per_pass``
         does not divide spp (as for Mitsuba's path)."""
-        split = self.samples_per_pass
         if self.passes > 1:
             return 0
+        split = self.samples_per_pass
         if not split:
             return self._fitting_split(scene, sensor, total)
         if split >= total:
@@ -638,24 +635,23 @@ class PhotonMapper(mi.SamplingIntegrator):
         sizes = self._emitted_per_map()[owned]
         depth, ratio, share = self._photon_depth(), self._stored_ratio(owned), \
             self._batch_share()
-        if self.maps_per_wave > 0:
-            largest = np.sort(sizes)[::-1][:self.maps_per_wave]
-            maps = memory.wave_bytes(int(largest.sum()), depth, ratio, share)
-        else:
-            budget = memory.WAVE_BUDGET_BYTES if self.wave_bytes is None else self.wave_bytes
-            maps = min(memory.wave_bytes(int(sizes.sum()), depth, ratio, share),
-                       max(budget, memory.wave_bytes(int(sizes.max()), depth, ratio, share)))
+        # The maps' waves as plan_waves would plan them with the whole wave budget.
+        budget = memory.WAVE_BUDGET_BYTES if self.wave_bytes is None else self.wave_bytes
+        waves = memory.plan_waves(sizes, depth, budget, ratio, self.maps_per_wave, share)
+        maps = memory.estimate_render(int(sizes.sum()), depth, 0, 0, 0, ratio, waves, sizes,
+                                      share).photon_maps
         width, height, _ = self._eye_size(scene, sensor, total)
         kept = self._eye_kept()
-        room = free - maps
-        if memory.eye_bytes(width, height, total, kept) <= room:
+        per_spp = max(memory.eye_bytes(width, height, 1, kept), 1)
+        # The most samples per pixel whose eye pass fits beside the maps (eye bytes grow
+        # with spp; counted from there, not from spp: a 1 x 1 film at 10^9 spp).
+        most = (free - maps) // per_spp
+        if total <= most:
             return 0
-        # (from the most samples per pixel that could fit: a 1 x 1 film at 10^9 spp)
-        most = room // max(memory.eye_bytes(width, height, 1, kept), 1)
-        for split in range(int(min(total - 1, most)), 0, -1):
+        for split in range(int(most), 0, -1):
             if width * height * split < MIN_SET_SAMPLES:
                 break
-            if total % split == 0 and memory.eye_bytes(width, height, split, kept) <= room:
+            if total % split == 0:
                 log.info("the eye pass of %d x %d at spp = %d (about %s) does not fit beside "
                          "the maps in the %s free: its samples are traced in %d sets of %d "
                          "per pixel (samples_per_pass sets them)", width, height, total,
@@ -785,10 +781,9 @@ class PhotonMapper(mi.SamplingIntegrator):
             held = part > 0 and len(waves) == 1 and \
                 all(layer.maps is not None for layer in self._layers)
             try:
-                for layer in self._layers:
-                    if not held:
-                        self.build_maps(scene, layer, sensor, spp, render_seed, pass_index,
-                                        wave, self._planned_budget)
+                for layer in [] if held else self._layers:
+                    self.build_maps(scene, layer, sensor, spp, render_seed, pass_index, wave,
+                                    self._planned_budget)
             except memory.MemoryGuardError:
                 if len(wave) == 1:
                     raise
