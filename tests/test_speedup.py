@@ -391,6 +391,14 @@ def test_bench_smoke(tmp_path, capsys):
     for name in ("integrator estimate, 32 maps / 1 map",
                  "estimate, 32 separate trees in turn / 1 map"):
         assert rows[name]["visible_points"] > 0
+    for d in (2, 8):
+        # Beside the tracing rows: the bare rate, and what sorting the rays would buy (their
+        # rate once sorted, the cost of sorting them and moving a lane's state, and both).
+        r = rows[f"tracing, {smoke['trace']:,} photons, vs path max_depth {d}"]
+        sorted_rate, reorder = r["sorted_intersections_per_s"], r["reorder_ns_per_ray"]
+        assert r["intersections_per_s"] > 0 and sorted_rate > 0 and reorder > 0
+        assert r["sorted_with_reorder_per_s"] == pytest.approx(
+            1 / (1 / sorted_rate + reorder * 1e-9), rel=1e-9)
     for n in smoke["memory"]:
         memory = rows[f"memory, {n:,} photons emitted"]
         print(f"memory, {n:,} photons: {memory['stored']:,} stored, resident "

@@ -23,7 +23,9 @@ moved the comparison within the run):
 - photon tracing vs Mitsuba's ``path`` (max_depth 2), ray segments per second, both counted:
   ours by the tracer, path's by replaying its decisions (:func:`path_segments`) (target 0.8x),
   and beside them the rate of Mitsuba's closest-hit intersection alone on as many incoherent
-  rays, the bound of a tracer that intersects every segment;
+  rays, the bound of a tracer that intersects every segment, and what sorting the rays would
+  buy (the same rays sorted and traced as coherent, and the cost of sorting them and moving
+  a lane's state);
 - photons traced per second for every kind of emitter, against an area light (none more than
   5x slower);
 - memory per stored photon, MEASURED in a fresh process rendering 10^6 and 10^7 photons: the
@@ -43,6 +45,7 @@ from .provenance import code_version, git_commit, machine
 from ..estimate import gather_flux
 from ..eyepath import eye_paths, first_hits
 from ..kdtree import LAYOUTS, build_forest, knn_query, morton_order, radius_query
+from ..kdtree.forest import spread_bits
 from ..photonmap import build_photon_maps, fixed_radius
 from ..scenes import load_scene
 from ..timing import median_time, paired_times, sync
@@ -270,6 +273,7 @@ def _bench_tracing(b: _Bench, scene_name, resolution, count, path_spp):
     scene = load_scene(scene_name, resolution=resolution, spp=1)
     segments = trace_photons(scene, count, 1, 2).segments        # the same photons each round
     bound = _intersection_rate(scene, segments, b.repeats)
+    ordered = _sorted_intersection(scene, segments, b.repeats)
     # Two baselines: path at max_depth 2 (camera, shadow and one bounce ray per sample: the
     # coherent camera rays flatter it) and at max_depth 8 without Russian roulette (mostly
     # incoherent bounces, like a photon's), its samples cut to keep the same work. Each is
@@ -286,17 +290,20 @@ def _bench_tracing(b: _Bench, scene_name, resolution, count, path_spp):
               path_rate / 1e6, f"Mitsuba path (max_depth {depth}, no Russian roulette)", 0.8,
               float(ours_rate / path_rate), "our rate / baseline rate", unit="M segments/s",
               rounds=(segments / ours_t) / (path_count / path_t),
-              intersections_per_s=bound, of_intersections=float(ours_rate / bound))
+              intersections_per_s=bound, of_intersections=float(ours_rate / bound),
+              **ordered)
         b.say(f"    Mitsuba's ray_intersect alone, {segments:,} incoherent rays: "
               f"{bound / 1e6:.4g} M rays/s; the tracer runs at {ours_rate / bound:.2f} of it")
+    b.say(f"    the same rays sorted (direction octant, origin's Morton code) and traced as "
+          f"coherent: {ordered['sorted_intersections_per_s'] / 1e6:.4g} M rays/s; sorting them "
+          f"and moving {LANE_STATE_BYTES} bytes of state per ray: "
+          f"{ordered['reorder_ns_per_ray']:.1f} ns per ray; both: "
+          f"{ordered['sorted_with_reorder_per_s'] / 1e6:.4g} M rays/s")
 
 
-def _intersection_rate(scene, count: int, repeats: int) -> float:
-    """Closest hits per second of ``scene.ray_intersect`` alone (every surface field, as the
-    tracer asks for) on ``count`` incoherent rays: origins uniform in the scene's bounding box
-    shrunk by a tenth, directions uniform on the sphere. A bound on any tracer's segments per
-    second that intersects each segment, as a photon's must; a shadow ray (``ray_test``, which
-    path counts as a segment too) costs a fraction of it."""
+def _incoherent_rays(scene, count: int):
+    """``count`` incoherent rays: origins uniform in the scene's bounding box shrunk by a
+    tenth, directions uniform on the sphere (evaluated)."""
     rng = mi.PCG32(count)
     box = scene.bbox()
     lo, extent = box.min + 0.05 * box.extents(), 0.9 * box.extents()
@@ -304,9 +311,73 @@ def _intersection_rate(scene, count: int, repeats: int) -> float:
     d = mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
     ray = mi.Ray3f(o, d)
     sync(ray)
-    seconds = median_time(lambda: scene.ray_intersect(ray, ray_flags=mi.RayFlags.All,
-                                                      coherent=False).p, repeats)
-    return count / seconds
+    return ray
+
+
+def _closest_hits(scene, ray, coherent: bool):
+    """What the tracer reads of a closest hit (every surface field)."""
+    return scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=coherent).p
+
+
+def _intersection_rate(scene, count: int, repeats: int) -> float:
+    """Closest hits per second of ``scene.ray_intersect`` alone (every surface field, as the
+    tracer asks for) on ``count`` incoherent rays (:func:`_incoherent_rays`). A bound on any
+    tracer's segments per second that intersects each segment in the order its paths give
+    them, as ours does; a shadow ray (``ray_test``, which path counts as a segment too) costs
+    a fraction of it."""
+    ray = _incoherent_rays(scene, count)
+    return count / median_time(lambda: _closest_hits(scene, ray, False), repeats)
+
+
+#: Bytes of a tracer lane's state (ray, power, random stream, photon, bounce, rank, runs of
+#: photons and slots): what a tracer that sorted its rays would move with each ray.
+LANE_STATE_BYTES = 64
+
+
+def _sort_key(ray, box):
+    """A 16-bit key that makes neighbouring rays alike: the direction's octant (3 bits),
+    then the top 13 bits of the Morton code of the origin's cell of 32^3 in ``box`` (the
+    scene's bounding box)."""
+    octant = mi.UInt32(ray.d.x > 0) | (mi.UInt32(ray.d.y > 0) << 1) | \
+        (mi.UInt32(ray.d.z > 0) << 2)
+    scale = [32.0 / max(float(box.extents()[a]), 1e-30) for a in range(3)]
+    cell = [spread_bits(mi.UInt32(dr.clip((ray.o[a] - box.min[a]) * scale[a], 0.0, 31.0))) << a
+            for a in range(3)]
+    return (octant << 13) | ((cell[0] | cell[1] | cell[2]) >> 2)
+
+
+def _ray_order(key):
+    """The permutation that sorts 16-bit ``key``: one radix pass where Dr.Jit has it."""
+    mkperm = getattr(dr.detail, "block_mkperm", None)
+    if mkperm is None or dr.backend_v(key) != dr.JitBackend.LLVM:
+        return dr.argsort(key)
+    dr.eval(key)
+    return mkperm(key, dr.width(key), 1 << 16)
+
+
+def _sorted_intersection(scene, count: int, repeats: int) -> dict:
+    """What sorting every bounce's rays would buy: the closest hits per second of the same
+    incoherent rays put in the order of :func:`_sort_key` and traced as coherent (sort not
+    timed), and the time per ray to sort them and move :data:`LANE_STATE_BYTES` of state per
+    ray into the new order (16-byte packet gathers, sequential stores), as a tracer that
+    sorted its rays each bounce would pay."""
+    ray = _incoherent_rays(scene, count)
+    ordered = dr.gather(mi.Ray3f, ray, _ray_order(_sort_key(ray, scene.bbox())))
+    sync(ordered)
+    sorted_rate = count / median_time(lambda: _closest_hits(scene, ordered, True), repeats)
+    words = LANE_STATE_BYTES // 16
+    state = dr.zeros(mi.Float, 4 * words * count)
+    own = dr.arange(mi.UInt32, count)
+
+    def reorder():
+        perm = _ray_order(_sort_key(ray, scene.bbox()))
+        moved = dr.empty(mi.Float, 4 * words * count)
+        for w in range(words):
+            dr.scatter(moved, dr.gather(mi.Vector4f, state, words * perm + w), words * own + w)
+        return moved
+    seconds = median_time(reorder, repeats)
+    return {"sorted_intersections_per_s": sorted_rate, "reorder_ns_per_ray": seconds / count * 1e9,
+            "sorted_with_reorder_per_s": 1.0 / (1.0 / sorted_rate + seconds / count)}
 
 
 def _bench_emitters(b: _Bench, count: int):

@@ -337,7 +337,7 @@ def check_coordinates(p, name: str, active=True):
                          f"coordinate found")
 
 
-def _spread_bits(x):
+def spread_bits(x):
     """The low 10 bits of ``x`` spread to every third bit (bit i to bit 3 i)."""
     x = (x | (x << 16)) & 0x030000FF
     x = (x | (x << 8)) & 0x0300F00F
@@ -353,7 +353,7 @@ def morton_codes(p) -> mi.UInt32:
     for a, c in enumerate((p.x, p.y, p.z)):
         lo, hi = dr.min(c), dr.max(c)            # 1-wide arrays: no round trip to the host
         q = mi.UInt32(dr.clip((c - lo) * (1023.0 / dr.maximum(hi - lo, 1e-30)), 0.0, 1023.0))
-        code |= _spread_bits(q) << a
+        code |= spread_bits(q) << a
     return code
 
 
