@@ -1063,6 +1063,16 @@ def test_a_group_that_is_not_a_table_is_named(tmp_path, text):
      r"map_photons must hold integers or floats .*got dtype bool"),
     (lambda meta, z: z.update(map_bytes=np.array([{}] * len(z["map_bytes"]))),
      r"n1.npz: map_bytes is an array of Python objects"),
+    # The rules that tie the files together (they loaded, and modelled nonsense, before).
+    (lambda meta, z: meta.update(bytes_per_photon=8),
+     r"bytes_per_photon must be >= 12 \(a photon's position alone is 12 bytes\), got 8"),
+    (lambda meta, z: meta.update(maps=meta["maps"] + [64]),
+     r"maps lists n = \[1, 2, 4, 8, 64\] but files has \[1, 2, 4, 8\]"),
+    (lambda meta, z: z.update(map_photons=z["map_photons"] + 1),
+     r"every n must split the same photons \(photons_stored = \d+, map_photons summed per "
+     r"n: \{1: \d+, 2: \d+"),
+    (lambda meta, z: z.update(map_bytes=0 * z["map_bytes"] + 100),
+     r"n1.npz: map 0's map_bytes \(100\) hold less than its \d+ photons of 28 bytes"),
 ])
 def test_a_broken_workload_names_the_file_and_the_fault(tmp_path, change, message):
     import json
@@ -1245,6 +1255,7 @@ def _without_times(d, ns=None):
             z = dict(f)
         z["map_seconds"] = np.zeros((z["map_seconds"].shape[0], 0))
         np.savez(d / name, **z)
+    meta["maps"] = sorted(int(n) for n in meta["files"])
     (d / "meta.json").write_text(json.dumps(meta))
     return d
 
