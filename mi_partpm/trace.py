@@ -628,8 +628,14 @@ def adjoint_correction(si, wi, wo):
     light leak). Exactly 1 where the shading normal is the geometric one. Without it, on a
     box with smooth vertex normals the light that bounced off it came out up to 1.18 of
     path's (a box of six faces in a scene written elsewhere); Mitsuba gives smooth normals
-    to every OBJ and PLY mesh without normals of its own unless ``face_normals`` is set."""
-    wi_g, wo_g = dr.dot(wi, si.n), dr.dot(wo, si.n)
+    to every OBJ and PLY mesh without normals of its own unless ``face_normals`` is set.
+    The geometric normal is turned to the shading normal's side first: its way is the
+    triangles' winding, which a mirroring ``to_world`` or a mesh wound the other way turns
+    against its vertex normals, and then every direction lay on "different sides" (a room
+    with a box mirrored by its transform stored 0.74 of the photons and 0.89 of the power it
+    stored with the box unmirrored)."""
+    n_g = si.n * dr.select(dr.dot(si.n, si.sh_frame.n) < 0, -1.0, 1.0)
+    wi_g, wo_g = dr.dot(wi, n_g), dr.dot(wo, n_g)
     wi_s, wo_s = dr.dot(wi, si.sh_frame.n), dr.dot(wo, si.sh_frame.n)
     factor = dr.abs(wi_s * wo_g) / dr.abs(wi_g * wo_s)
     leak = (wi_g * wi_s <= 0) | (wo_g * wo_s <= 0)
