@@ -40,7 +40,7 @@ import numpy as np
 from mi_partpm import memory
 from mi_partpm.backends import LocalBackend
 from mi_partpm.camera import CameraPass, scene_sensor
-from mi_partpm.estimate import note_bent_bsdfs
+from mi_partpm.estimate import bent_table, note_bent_bsdfs
 from mi_partpm.eyepath import eye_paths
 from mi_partpm.logs import follow_mitsuba_level
 from mi_partpm.photonmap import build_photon_maps
@@ -262,7 +262,7 @@ class PhotonMapper(mi.SamplingIntegrator):
                                 min_bounce=self.min_bounce(), paths=layer.paths,
                                 caustic_through=self.caustic_through(),
                                 caustic_past_landings=self.caustic_past_landings(),
-                                store_on=self.store_on(),
+                                store_on=self.store_on(), bent_bsdfs=bent_table(),
                                 progress=traced,
                                 memory_check=guard)
         # The wave's maps become this process's maps 0 .. len(maps)-1.

@@ -37,7 +37,7 @@ from .scenes import surface_shapes
 log = logging.getLogger("mi_partpm")
 
 __all__ = ["Flux", "gather_flux", "knn_flux", "radiance_estimate", "knn_radiance_estimate",
-           "is_plain_diffuse", "note_bent_bsdfs", "KERNELS"]
+           "is_plain_diffuse", "note_bent_bsdfs", "bent_table", "KERNELS"]
 
 def _simpson(d2, r2):
     """Silverman's biweight, Mitsuba 0.6's "Simpson" kernel: 3 (1 - d^2/r^2)^2."""
@@ -108,6 +108,12 @@ def note_bent_bsdfs(scene: mi.Scene, samples: int = 16) -> dict:
                 (grouped or not _lambertian(scene, shape, bsdf, samples))
     _BENT["table"] = registry_table(bent) if any(bent.values()) else None
     return bent
+
+
+def bent_table():
+    """The device table of the bent BSDFs :func:`note_bent_bsdfs` found last, by registry id
+    (1: bent); None where none is."""
+    return _BENT["table"]
 
 
 def _lambertian(scene, shape, bsdf, samples: int) -> bool:

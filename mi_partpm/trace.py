@@ -41,6 +41,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .estimate import bent_table, note_bent_bsdfs
 from .eyepath import lands_on, passes_through
 from .memory import TRACE_BATCH
 from .photons import Photons, empty_photons, encode_direction, spectrum_channels
@@ -276,7 +277,8 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
                   progress: Optional[Callable[[str], None]] = None,
                   batch_size: int = TRACE_BATCH,
                   memory_check: Optional[Callable[[float, int], None]] = None,
-                  caustic_past_landings: bool = False, store_on: str = "smooth") -> Photons:
+                  caustic_past_landings: bool = False, store_on: str = "smooth",
+                  bent_bsdfs="find") -> Photons:
     """Trace ``photon_count`` photons split over ``map_count`` maps.
 
     Parameters
@@ -331,6 +333,12 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         glossy surfaces on, no estimate reads a photon on one, and within the radius of a
         surface it touches it was counted there: rough glass resting on a floor made the
         floor 1.6 times too bright around the contact).
+    bent_bsdfs : mi.UInt32 or None or "find"
+        The scene's BSDFs that look plain diffuse but bend their normal inside (``normalmap``,
+        ``bumpmap``), as :func:`~mi_partpm.estimate.note_bent_bsdfs` finds them (its device
+        table, :func:`~mi_partpm.estimate.bent_table`; None: none is); "find" (default):
+        found here. A photon that bounces off one is corrected for the normal it bends to
+        (:func:`bent_normal`).
 
     Returns
     -------
@@ -354,9 +362,12 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
     if n_lanes > MAX_RUN:
         raise ValueError(f"a tracing run has at most 2^32 - 1 photons, got {n_lanes} (trace "
                          f"the maps in several runs: maps=...)")
+    if isinstance(bent_bsdfs, str) and bent_bsdfs == "find":
+        note_bent_bsdfs(scene)
+        bent_bsdfs = bent_table()
     run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
                min_bounce, PATHS.index(paths), caustic_through == "glossy",
-               caustic_past_landings, maps, sizes[maps], store_on == "diffuse")
+               caustic_past_landings, maps, sizes[maps], store_on == "diffuse", bent_bsdfs)
     # A run of up to ``batch_size // PILOT_SHARE`` paths is one batch with room for
     # PILOT_GUESS photons per path. A longer run traces a pilot of a few thousand paths
     # first, which measures the photons stored per path before the batches size their
@@ -403,8 +414,9 @@ class _Run:
 
     def __init__(self, scene, photon_count, seeds, max_depth, rr_depth, min_bounce, paths,
                  through_glossy=False, past_landings=False, maps=(0,), sizes=None,
-                 store_diffuse=False):
+                 store_diffuse=False, bent=None):
         self.scene, self.photon_count = scene, photon_count
+        self.bent = bent                          # device table by registry id, or None
         self.seeds = mi.UInt64(seeds)
         self.max_depth, self.rr_depth, self.min_bounce = max_depth, rr_depth, min_bounce
         self.paths, self.through_glossy = paths, through_glossy
@@ -620,7 +632,7 @@ def shading_correction(si, wi):
     return dr.select(cos_g > 1e-3, cos_s / dr.select(cos_g > 1e-3, cos_g, 1.0), 1.0)
 
 
-def adjoint_correction(si, wi, wo):
+def adjoint_correction(si, wi, wo, n_s=None):
     """The adjoint BSDF's correction for shading normals at a photon's bounce (Veach 1997,
     section 5.3; as Mitsuba's light tracer ``ptracer`` applies it): |wi . n_s| |wo . n_g| /
     (|wi . n_g| |wo . n_s|), with ``wi`` towards the light and ``wo`` the sampled direction,
@@ -633,13 +645,45 @@ def adjoint_correction(si, wi, wo):
     triangles' winding, which a mirroring ``to_world`` or a mesh wound the other way turns
     against its vertex normals, and then every direction lay on "different sides" (a room
     with a box mirrored by its transform stored 0.74 of the photons and 0.89 of the power it
-    stored with the box unmirrored)."""
-    n_g = si.n * dr.select(dr.dot(si.n, si.sh_frame.n) < 0, -1.0, 1.0)
+    stored with the box unmirrored). ``n_s``: the shading normal, where the BSDF shades
+    with another than Mitsuba's (:func:`bent_normal`)."""
+    n_s = si.sh_frame.n if n_s is None else n_s
+    n_g = si.n * dr.select(dr.dot(si.n, n_s) < 0, -1.0, 1.0)
     wi_g, wo_g = dr.dot(wi, n_g), dr.dot(wo, n_g)
-    wi_s, wo_s = dr.dot(wi, si.sh_frame.n), dr.dot(wo, si.sh_frame.n)
+    wi_s, wo_s = dr.dot(wi, n_s), dr.dot(wo, n_s)
     factor = dr.abs(wi_s * wo_g) / dr.abs(wi_g * wo_s)
     leak = (wi_g * wi_s <= 0) | (wo_g * wo_s <= 0)
     return dr.select(leak | ~dr.isfinite(factor), 0.0, factor)
+
+
+#: The directions :func:`bent_normal` evaluates a BSDF in lean this far from Mitsuba's
+#: shading normal (radians): it finds normals bent by up to 90 degrees less this.
+PROBE_LEAN = 0.5
+
+
+def bent_normal(si, bsdf, active):
+    """The normal a Lambertian BSDF that bends it inside (``normalmap`` or ``bumpmap`` around
+    ``diffuse``) shades with at ``si``, in world space, found from three evaluations: for
+    directions d_k leaning :data:`PROBE_LEAN` from the shading normal at azimuths t_k = 0,
+    120 and 240 degrees, the BSDF gives k max(0, d_k . n) (k = albedo / pi, summed over the
+    channels), and where all three are positive, their sums weighted by cos t_k, by sin t_k
+    and by 1 give n's three components up to k. Mitsuba's shading normal where
+    they are not (a normal bent further than 90 degrees less the lean, an albedo of 0, or a
+    ``si.wi`` below the bent surface, where the BSDF reflects nothing anyway). The plugins
+    keep the normal to themselves; without it a photon that bounced off a constant
+    37-degree normal map was corrected for the wrong normal."""
+    ctx = mi.BSDFContext()
+    s, c = float(np.sin(PROBE_LEAN)), float(np.cos(PROBE_LEAN))
+    cos_t = [float(np.cos(2.0 * np.pi * k / 3.0)) for k in range(3)]
+    sin_t = [float(np.sin(2.0 * np.pi * k / 3.0)) for k in range(3)]
+    v = [dr.sum(mi.Spectrum(bsdf.eval(ctx, si, mi.Vector3f(s * ck, s * sk, c), active)))
+         for ck, sk in zip(cos_t, sin_t)]
+    # sum_k v_k cos t_k = 3/2 k s n_x, the same with sines for n_y; sum_k v_k = 3 k c n_z.
+    local = dr.normalize(mi.Vector3f(2.0 * sum(vk * ck for vk, ck in zip(v, cos_t)) / s,
+                                     2.0 * sum(vk * sk for vk, sk in zip(v, sin_t)) / s,
+                                     (v[0] + v[1] + v[2]) / c))
+    found = (v[0] > 0) & (v[1] > 0) & (v[2] > 0)
+    return dr.select(found, si.to_world(local), si.sh_frame.n)
 
 
 @dr.syntax
@@ -750,7 +794,13 @@ def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=No
                                       mi.Point2f(rng.next_float32(active),
                                                  rng.next_float32(active)), active)
         wo = si.to_world(bs.wo)
-        power *= bsdf_weight * adjoint_correction(si, -ray.d, wo)
+        n_s = si.sh_frame.n
+        if dr.hint(run.bent is not None, mode="scalar"):
+            key = dr.reinterpret_array(mi.UInt32, bsdf)
+            bent = active & (dr.gather(mi.UInt32, run.bent, key,
+                                       active & (key < dr.width(run.bent))) != 0)
+            n_s = dr.select(bent, bent_normal(si, bsdf, bent), n_s)
+        power *= bsdf_weight * adjoint_correction(si, -ray.d, wo, n_s)
         ray = si.spawn_ray(wo)
         # The lobes a caustic path may bounce on before the surface it is stored on; the path
         # is no caustic one after that surface, whichever of its lobes it left by (a plastic's
