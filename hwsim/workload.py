@@ -131,7 +131,7 @@ def load_workloads(directory) -> tuple[dict, dict[int, MapWorkloads]]:
                              f"{n_text!r}): one file per n")
         spelt[n] = n_text
         loads[n] = _load_map_workloads(d / name, n, meta)
-    _check_consistent(meta_path, meta, loads)
+    _check_consistent(meta_path, meta, {n: (loads[n], d / files[spelt[n]]) for n in loads})
     return meta, loads
 
 
@@ -145,24 +145,25 @@ def _check_consistent(meta_path: Path, meta: dict, loads: dict):
     position; ``maps`` lists the n of ``files``; every n partitions the same photons (the
     same total, ``photons_stored`` where given); a map's bytes hold at least its photon
     records. The photons found summed over the maps are not held to n = 1's: a recorded
-    workload's are (eq. (2)), a synthetic one need not be."""
+    workload's are (eq. (2)), a synthetic one need not be. ``loads``: {n: (its
+    MapWorkloads, its file)}."""
     if meta["bytes_per_photon"] < POSITION_BYTES:
         raise ValueError(f"{meta_path}: bytes_per_photon must be >= {POSITION_BYTES} (a "
                          f"photon's position alone is 12 bytes), got {meta['bytes_per_photon']}")
     if "maps" in meta and sorted(meta["maps"]) != sorted(loads):
         raise ValueError(f"{meta_path}: maps lists n = {meta['maps']!r} but files has "
                          f"{sorted(loads)}: they must name the same n")
-    stored = {n: int(w.map_photons.sum()) for n, w in loads.items()}
+    stored = {n: int(w.map_photons.sum()) for n, (w, _) in loads.items()}
     want = meta.get("photons_stored")
     if want is not None and any(v != want for v in stored.values()) or \
             len(set(stored.values())) > 1:
         said = f"photons_stored = {want}, " if want is not None else ""
         raise ValueError(f"{meta_path}: every n must split the same photons ({said}map_photons "
                          f"summed per n: {dict(sorted(stored.items()))})")
-    for n, w in sorted(loads.items()):
+    for n, (w, path) in sorted(loads.items()):
         if np.any(w.map_bytes < w.map_photons * meta["bytes_per_photon"]):
             m = int(np.argmax(w.map_bytes < w.map_photons * meta["bytes_per_photon"]))
-            raise ValueError(f"{meta_path.parent / meta['files'].get(str(n), f'n{n}.npz')}: "
+            raise ValueError(f"{path}: "
                              f"map {m}'s map_bytes ({int(w.map_bytes[m])}) hold less than its "
                              f"{int(w.map_photons[m])} photons of {meta['bytes_per_photon']} "
                              f"bytes")

@@ -337,8 +337,9 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         The scene's BSDFs that look plain diffuse but bend their normal inside (``normalmap``,
         ``bumpmap``), as :func:`~mi_partpm.estimate.note_bent_bsdfs` finds them (its device
         table, :func:`~mi_partpm.estimate.bent_table`; None: none is); "find" (default):
-        found here. A photon that bounces off one is corrected for the normal it bends to
-        (:func:`bent_normal`).
+        found here, with ``note_bent_bsdfs``, which also sets the table the estimate reads
+        (for this scene). A photon that bounces off one is corrected for the normal it bends
+        to (:func:`bent_normal`).
 
     Returns
     -------
@@ -664,24 +665,29 @@ PROBE_LEAN = 0.5
 def bent_normal(si, bsdf, active):
     """The normal a Lambertian BSDF that bends it inside (``normalmap`` or ``bumpmap`` around
     ``diffuse``) shades with at ``si``, in world space, found from three evaluations: for
-    directions d_k leaning :data:`PROBE_LEAN` from the shading normal at azimuths t_k = 0,
-    120 and 240 degrees, the BSDF gives k max(0, d_k . n) (k = albedo / pi, summed over the
-    channels), and where all three are positive, their sums weighted by cos t_k, by sin t_k
-    and by 1 give n's three components up to k. Mitsuba's shading normal where
-    they are not (a normal bent further than 90 degrees less the lean, an albedo of 0, or a
-    ``si.wi`` below the bent surface, where the BSDF reflects nothing anyway). The plugins
-    keep the normal to themselves; without it a photon that bounced off a constant
-    37-degree normal map was corrected for the wrong normal."""
+    directions d_k leaning :data:`PROBE_LEAN` from the shading normal (on ``si.wi``'s side:
+    ``twosided`` turns a hit from behind to its front) at azimuths t_k = 0, 120 and 240
+    degrees, the BSDF gives k max(0, d_k . n), and where all three are positive, their sums
+    weighted by cos t_k, by sin t_k and by 1 give n's three components up to k. Here k is
+    albedo / pi summed over the channels, times Mitsuba 3.9's shadowing term for bent
+    normals (Estevez et al. 2019), which depends on a direction's angle to the shading
+    normal alone: the probes share that angle, so they share the term. Mitsuba's shading
+    normal where they are not all positive (a normal bent further than 90 degrees less the
+    lean, or an albedo of 0). The plugins keep the normal to themselves; without it a
+    photon that bounced off a constant 37-degree normal map was corrected for the wrong
+    normal. Exact for any Lambertian BSDF (its own shading normal), so a plain one taken as
+    bent costs the three evaluations and changes nothing."""
     ctx = mi.BSDFContext()
     s, c = float(np.sin(PROBE_LEAN)), float(np.cos(PROBE_LEAN))
+    side = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
     cos_t = [float(np.cos(2.0 * np.pi * k / 3.0)) for k in range(3)]
     sin_t = [float(np.sin(2.0 * np.pi * k / 3.0)) for k in range(3)]
-    v = [dr.sum(mi.Spectrum(bsdf.eval(ctx, si, mi.Vector3f(s * ck, s * sk, c), active)))
+    v = [dr.sum(mi.Spectrum(bsdf.eval(ctx, si, mi.Vector3f(s * ck, s * sk, side * c), active)))
          for ck, sk in zip(cos_t, sin_t)]
-    # sum_k v_k cos t_k = 3/2 k s n_x, the same with sines for n_y; sum_k v_k = 3 k c n_z.
+    # sum_k v_k cos t_k = 3/2 k s n_x, the same with sines for n_y; sum_k v_k = 3 k c |n_z|.
     local = dr.normalize(mi.Vector3f(2.0 * sum(vk * ck for vk, ck in zip(v, cos_t)) / s,
                                      2.0 * sum(vk * sk for vk, sk in zip(v, sin_t)) / s,
-                                     (v[0] + v[1] + v[2]) / c))
+                                     side * (v[0] + v[1] + v[2]) / c))
     found = (v[0] > 0) & (v[1] > 0) & (v[2] > 0)
     return dr.select(found, si.to_world(local), si.sh_frame.n)
 

@@ -704,26 +704,34 @@ def test_final_gather_from_a_masked_diffuse_surface_with_glossy_trace(opacity):
     assert abs(ratio - 1) < 0.04, ratio
 
 
-@pytest.mark.parametrize("texel, found", [
-    ([0.8, 0.5, 0.9], True), ([0.2, 0.7, 0.8], True), ([0.5, 0.1, 0.8], True),
-    ([0.5, 0.5, 1.0], True), ([0.95, 0.5, 0.6], False)])
-def test_the_normal_a_normal_map_bends_to_is_found_from_its_values(texel, found):
+@pytest.mark.parametrize("texel, found, behind", [
+    ([0.8, 0.5, 0.9], True, False), ([0.2, 0.7, 0.8], True, False),
+    ([0.5, 0.1, 0.8], True, False), ([0.5, 0.5, 1.0], True, False),
+    ([0.95, 0.5, 0.6], False, False), ([0.8, 0.5, 0.9], True, True)])
+def test_the_normal_a_normal_map_bends_to_is_found_from_its_values(texel, found, behind):
     """bent_normal finds the normal a normal-mapped diffuse BSDF shades with from three of
     its values (Mitsuba keeps it inside the plugin): the texel's normal in the shading
     frame, to float rounding, at tilts of 37, 50 and 53 degrees and none; at 77 degrees,
-    beyond what its probes reach (90 degrees less PROBE_LEAN), Mitsuba's shading normal."""
+    beyond what its probes reach (90 degrees less PROBE_LEAN), Mitsuba's shading normal.
+    A twosided one hit from behind shades with the texel's normal mirrored to that side
+    (its probes on the front side all read 0, and the bounce went uncorrected)."""
     from mi_partpm.trace import PROBE_LEAN, bent_normal
     tilt = np.zeros((4, 4, 3), dtype=np.float32) + np.array(texel, np.float32)
     bsdf = {"type": "normalmap", "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(tilt),
                                                "raw": True},
             "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.2, 0]}}}
+    if behind:
+        bsdf = {"type": "twosided", "bsdf": bsdf}
     scene = mi.load_dict({"type": "scene", "panel": {
         "type": "rectangle", "bsdf": bsdf,
         "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], 20)}})
-    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(0.1, 0.2, 3), mi.Vector3f(0, 0, -1)))
+    side = -1.0 if behind else 1.0
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(0.1, 0.2, 3 * side),
+                                      mi.Vector3f(0, 0, -side)))
     texel_normal = 2 * np.array(texel) - 1
     texel_normal /= np.linalg.norm(texel_normal)
     assert (np.degrees(np.arccos(texel_normal[2])) < 90 - np.degrees(PROBE_LEAN)) == found
+    texel_normal[2] *= side
     want = si.sh_frame.to_world(mi.Vector3f(*[float(x) for x in texel_normal])) if found \
         else si.sh_frame.n
     got = bent_normal(si, si.bsdf(), True)
