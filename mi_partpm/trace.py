@@ -41,7 +41,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .estimate import bent_table, note_bent_bsdfs
 from .eyepath import lands_on, passes_through
 from .memory import TRACE_BATCH
 from .photons import Photons, empty_photons, encode_direction, spectrum_channels
@@ -364,6 +363,9 @@ def trace_photons(scene: mi.Scene, photon_count: int, map_count: int = 1, seed: 
         raise ValueError(f"a tracing run has at most 2^32 - 1 photons, got {n_lanes} (trace "
                          f"the maps in several runs: maps=...)")
     if isinstance(bent_bsdfs, str) and bent_bsdfs == "find":
+        # Here, not at the top: the estimate's module needs a variant set when imported,
+        # and the command line imports this one before it sets one.
+        from .estimate import bent_table, note_bent_bsdfs
         note_bent_bsdfs(scene)
         bent_bsdfs = bent_table()
     run = _Run(scene, photon_count, map_seeds(seed, map_count), max_depth, rr_depth,
