@@ -161,8 +161,9 @@ def _check_consistent(meta_path: Path, meta: dict, loads: dict):
         raise ValueError(f"{meta_path}: every n must split the same photons ({said}map_photons "
                          f"summed per n: {dict(sorted(stored.items()))})")
     for n, (w, path) in sorted(loads.items()):
-        if np.any(w.map_bytes < w.map_photons * meta["bytes_per_photon"]):
-            m = int(np.argmax(w.map_bytes < w.map_photons * meta["bytes_per_photon"]))
+        short = w.map_bytes < w.map_photons * meta["bytes_per_photon"]
+        if np.any(short):
+            m = int(np.argmax(short))
             raise ValueError(f"{path}: "
                              f"map {m}'s map_bytes ({int(w.map_bytes[m])}) hold less than its "
                              f"{int(w.map_photons[m])} photons of {meta['bytes_per_photon']} "

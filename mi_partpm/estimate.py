@@ -28,7 +28,7 @@ import drjit as dr
 import numpy as np
 import mitsuba as mi
 
-from .eyepath import lobe_context, registry_id, registry_table, values_agree
+from .eyepath import lobe_context, registry_flag, registry_id, registry_table, values_agree
 from .kdtree import knn_query, radius_query
 from .kdtree.radius import radius_array
 from .photonmap import PhotonMaps
@@ -70,8 +70,7 @@ def is_plain_diffuse(flags, bsdf=None):
     plain = mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ((flags & varying) == 0)
     table = _BENT["table"]
     if bsdf is not None and table is not None:
-        key = dr.reinterpret_array(mi.UInt32, bsdf)
-        plain &= dr.gather(mi.UInt32, table, key, plain & (key < dr.width(table))) == 0
+        plain &= ~registry_flag(table, bsdf, plain)
     return plain
 
 

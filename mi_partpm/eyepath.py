@@ -122,6 +122,13 @@ def registry_id(bsdf) -> int:
     return int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
 
 
+def registry_flag(table, bsdf, active=True):
+    """Per lane, whether the BSDF ``bsdf`` (a ``mi.BSDFPtr``) is flagged in ``table`` (a
+    :func:`registry_table`): False for lanes not ``active`` and for ids beyond the table."""
+    key = dr.reinterpret_array(mi.UInt32, bsdf)
+    return dr.gather(mi.UInt32, table, key, active & (key < dr.width(table))) != 0
+
+
 def registry_table(flags: dict) -> mi.UInt32:
     """A device table indexed by registry id: 1 where ``flags[id]`` is true, 0 elsewhere
     (ids beyond it are 0 too, for a lookup masked by its width)."""
@@ -369,9 +376,7 @@ def eye_paths(scene: mi.Scene, sampler: mi.Sampler, ray, max_depth: int, rr_dept
             traced = active & mi.has_flag(flags, mi.BSDFFlags.Glossy)
             glossy_only = traced & ~mi.has_flag(flags, mi.BSDFFlags.Diffuse)
             # A BSDF that cannot split its lobes is a visible point for all of them.
-            bsdf_id = dr.reinterpret_array(mi.UInt32, bsdf)
-            traced &= glossy_only | (dr.gather(mi.UInt32, unsplit, bsdf_id, traced & (
-                bsdf_id < dr.width(unsplit))) == 0)
+            traced &= glossy_only | ~registry_flag(unsplit, bsdf, traced)
         if depth + 1 < limit:
             smooth = active & mi.has_flag(flags, mi.BSDFFlags.Smooth) & ~glossy_only
             # One kernel computes the hit and the mask before they are gathered from.

@@ -41,7 +41,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .eyepath import lands_on, passes_through
+from .eyepath import lands_on, passes_through, registry_flag
 from .memory import TRACE_BATCH
 from .photons import Photons, empty_photons, encode_direction, spectrum_channels
 from .props import segment_limit
@@ -804,9 +804,7 @@ def _trace_paths(run, first, photon_total, out, runs, capacity, width, counts=No
         wo = si.to_world(bs.wo)
         n_s = si.sh_frame.n
         if dr.hint(run.bent is not None, mode="scalar"):
-            key = dr.reinterpret_array(mi.UInt32, bsdf)
-            bent = active & (dr.gather(mi.UInt32, run.bent, key,
-                                       active & (key < dr.width(run.bent))) != 0)
+            bent = registry_flag(run.bent, bsdf, active)
             n_s = dr.select(bent, bent_normal(si, bsdf, bent), n_s)
         power *= bsdf_weight * adjoint_correction(si, -ray.d, wo, n_s)
         ray = si.spawn_ray(wo)

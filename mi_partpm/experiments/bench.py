@@ -44,8 +44,7 @@ import numpy as np
 from .provenance import code_version, git_commit, machine
 from ..estimate import gather_flux
 from ..eyepath import eye_paths, first_hits
-from ..kdtree import LAYOUTS, build_forest, knn_query, morton_order, radius_query
-from ..kdtree.forest import spread_bits
+from ..kdtree import LAYOUTS, build_forest, knn_query, morton_codes, morton_order, radius_query
 from ..photonmap import build_photon_maps, fixed_radius
 from ..scenes import load_scene
 from ..timing import median_time, paired_times, sync
@@ -336,14 +335,11 @@ LANE_STATE_BYTES = 64
 
 def _sort_key(ray, box):
     """A 16-bit key that makes neighbouring rays alike: the direction's octant (3 bits),
-    then the top 13 bits of the Morton code of the origin's cell of 32^3 in ``box`` (the
-    scene's bounding box)."""
+    then the top 13 bits of the origin's Morton code over ``box`` (the scene's bounding
+    box)."""
     octant = mi.UInt32(ray.d.x > 0) | (mi.UInt32(ray.d.y > 0) << 1) | \
         (mi.UInt32(ray.d.z > 0) << 2)
-    scale = [32.0 / max(float(box.extents()[a]), 1e-30) for a in range(3)]
-    cell = [spread_bits(mi.UInt32(dr.clip((ray.o[a] - box.min[a]) * scale[a], 0.0, 31.0))) << a
-            for a in range(3)]
-    return (octant << 13) | ((cell[0] | cell[1] | cell[2]) >> 2)
+    return (octant << 13) | (morton_codes(ray.o, box) >> 17)
 
 
 def _ray_order(key):
@@ -361,8 +357,8 @@ def _sorted_intersection(scene, count: int, repeats: int) -> dict:
     timed), and the time per ray to sort them and move :data:`LANE_STATE_BYTES` of state per
     ray into the new order (16-byte packet gathers, sequential stores), as a tracer that
     sorted its rays each bounce would pay."""
-    ray = _incoherent_rays(scene, count)
-    ordered = dr.gather(mi.Ray3f, ray, _ray_order(_sort_key(ray, scene.bbox())))
+    ray, box = _incoherent_rays(scene, count), scene.bbox()
+    ordered = dr.gather(mi.Ray3f, ray, _ray_order(_sort_key(ray, box)))
     sync(ordered)
     sorted_rate = count / median_time(lambda: _closest_hits(scene, ordered, True), repeats)
     words = LANE_STATE_BYTES // 16
@@ -373,7 +369,7 @@ def _sorted_intersection(scene, count: int, repeats: int) -> dict:
     own = dr.arange(mi.UInt32, count)
 
     def reorder():
-        perm = _ray_order(_sort_key(ray, scene.bbox()))
+        perm = _ray_order(_sort_key(ray, box))
         moved = dr.empty(mi.Float, 4 * words * count)
         for w in range(words):
             dr.scatter(moved, dr.gather(mi.Vector4f, state, words * perm + w), words * own + w)

@@ -337,7 +337,7 @@ def check_coordinates(p, name: str, active=True):
                          f"coordinate found")
 
 
-def spread_bits(x):
+def _spread_bits(x):
     """The low 10 bits of ``x`` spread to every third bit (bit i to bit 3 i)."""
     x = (x | (x << 16)) & 0x030000FF
     x = (x | (x << 8)) & 0x0300F00F
@@ -345,15 +345,19 @@ def spread_bits(x):
     return (x | (x << 2)) & 0x09249249
 
 
-def morton_codes(p) -> mi.UInt32:
+def morton_codes(p, box=None) -> mi.UInt32:
     """30-bit Morton (Z-order) codes of ``p`` (a ``mi.Point3f`` or anything
-    :func:`as_points` takes) over its bounding box, on the device."""
+    :func:`as_points` takes) over its bounding box, or over ``box`` (a bounding box known
+    beforehand, e.g. a scene's: no reductions), on the device."""
     p = as_points(p)
     code = dr.zeros(mi.UInt32, dr.width(p))
     for a, c in enumerate((p.x, p.y, p.z)):
-        lo, hi = dr.min(c), dr.max(c)            # 1-wide arrays: no round trip to the host
+        if box is None:
+            lo, hi = dr.min(c), dr.max(c)        # 1-wide arrays: no round trip to the host
+        else:
+            lo, hi = mi.Float(box.min[a]), mi.Float(box.max[a])   # the same float32 steps
         q = mi.UInt32(dr.clip((c - lo) * (1023.0 / dr.maximum(hi - lo, 1e-30)), 0.0, 1023.0))
-        code |= spread_bits(q) << a
+        code |= _spread_bits(q) << a
     return code
 
 
