@@ -276,6 +276,26 @@ def test_knn_rejects_bad_k():
         knn_neighbours(forest, np.zeros((1, 3)), 16384)
 
 
+def test_knn_neighbours_above_the_photon_count_asks_for_the_photons_only(monkeypatch):
+    """A k above the forest's N photons (a scipy user's "all of them") answers as scipy does,
+    inf and N past the N found, but walks for N only: the walk's cost follows the k it
+    keeps, and all 100 photons asked for with k = 3400 took 12.6 s where k = 100 takes 0.01 s
+    (and k = 16383 of 1000 photons 258 s). Asserted on the k the walk is given."""
+    import mi_partpm.kdtree.knn as knn
+    rng = np.random.default_rng(5)
+    points, queries = rng.random((100, 3)), rng.random((7, 3))
+    asked = []
+    walk = knn.knn_query
+    monkeypatch.setattr(knn, "knn_query",
+                        lambda f, p, k, **kw: asked.append(k) or walk(f, p, k, **kw))
+    dist, idx = knn_neighbours(build_forest(points), queries, 3400)
+    ref_d, ref_i = cKDTree(points).query(queries, 3400)
+    assert asked == [100] and dist.shape == idx.shape == (7, 3400)
+    np.testing.assert_allclose(dist, ref_d, rtol=1e-5, atol=1e-6)
+    assert (idx[:, 100:] == 100).all() and np.isinf(dist[:, 100:]).all()
+    assert all(set(a) == set(b) for a, b in zip(idx[:, :100], ref_i[:, :100]))
+
+
 @pytest.mark.parametrize("order, queries", [("given", 10), ("morton", 4100)])
 def test_knn_at_the_largest_k_answers_as_scipy(order, queries):
     """The largest k the query takes runs on both walks: it was one too many for Dr.Jit's
@@ -326,6 +346,9 @@ def _call(kind, forest, q, **kw):
      r"payload has 3 entries for 99 points"),
     (lambda pts: knn_neighbours(build_forest(pts), pts[:5].T, 2),
      r"points must have shape \(N, 3\), got \(3, 5\)"),
+    (lambda pts: build_forest([[0, 0, 0], [1, 2]]), r"points must be numbers of shape \(N, 3\)"),
+    (lambda pts: knn_neighbours(build_forest(pts), [[0, 0, 0], [1, 2]], 2),
+     r"points must be numbers of shape \(N, 3\)"),
     (lambda pts: _call("radius", build_forest(pts), pts[:5], r=-0.3),
      r"r must be 0 or in \[1e-15, inf\] \(inf for no bound\), got -0.3"),
     (lambda pts: _call("radius", build_forest(pts), pts[:5], r=5e-16),

@@ -310,12 +310,13 @@ def as_points(points, name: str = "points") -> mi.Point3f:
             raise ValueError(f"{name} must be a Dr.Jit 3-vector such as mi.Point3f, or an "
                              f"array of shape (N, 3); got {type(points).__name__}")
         return mi.Point3f(mi.Float(points.x), mi.Float(points.y), mi.Float(points.z))
-    if np.iscomplexobj(points):
-        raise ValueError(f"{name} must be real numbers of shape (N, 3), got complex ones")
     try:                                     # NumPy, lists, tensors, one scalar point
-        pts = np.asarray(points, dtype=np.float64)
+        is_complex = np.iscomplexobj(points)  # itself fails on a ragged list
+        pts = None if is_complex else np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be numbers of shape (N, 3)") from None
+    if is_complex:
+        raise ValueError(f"{name} must be real numbers of shape (N, 3), got complex ones")
     if pts.ndim == 1 and pts.shape[0] == 3:
         pts = pts.reshape(1, 3)
     if pts.ndim != 2 or pts.shape[1] != 3:
