@@ -365,7 +365,7 @@ def test_compare_cornell_box(comparisons):
 def test_compare_happy_buddha(comparisons):
     """The paper's claim on the Happy Buddha (diffuse only, figures 7-9), as numbers.
 
-    Measured, seeds 0-3: partpm vs pm relMSE 0.009-0.012, mean ratio 0.957-0.971: partpm is
+    Measured, seeds 0-3: partpm vs pm relMSE 0.009-0.012, mean ratio 0.954-0.971: partpm is
     about 4% darker, on the statue's thin, brightly lit top, where a ball of fixed r = 1.5 cm
     reaches past the surface and kNN's smaller radius does not. The error is spread: the
     largest 8x8 tile of 64 holds 15-21% (bound 35%; an error in one place would hold most of
@@ -374,19 +374,21 @@ def test_compare_happy_buddha(comparisons):
     Against path, on linear radiance (no light is in view, so nothing is clamped away
     either way): relMSE pm 0.045-0.052, partpm 0.057-0.065 (r blurs the statue's detail: path
     blurred by a 1-pixel Gaussian scores 0.055, by 2 pixels 0.14; a black image 0.60); bound
-    0.1. Mean ratio pm 1.001-1.018 (bound 1 +- 0.04), partpm 0.961-0.974 (the 4% above;
-    bound 1 +- 0.07): a 10% error fails either.
+    0.1. Mean ratio pm 1.001-1.018 (bound 1 +- 0.04), partpm 0.960-0.974 (the 4% above):
+    partpm's bounds are centred on that bias, [0.93, 1.0] against path and against pm, so
+    that 5% more or less light fails (bounds of 1 +- 0.07 let partpm 10% brighter pass, at
+    1.056 of path and 1.050 of pm).
     """
     result, out = comparisons["happy_buddha"]
     m = _report("happy_buddha", result)
     assert m["partpm_vs_pm"]["rel_mse"] < 0.02
-    assert abs(m["partpm_vs_pm"]["mean_ratio"] - 1) < 0.06
+    assert 0.93 < m["partpm_vs_pm"]["mean_ratio"] < 1.0
     assert m["pm_vs_reference"]["rel_mse"] < 0.1
     assert m["partpm_vs_reference"]["rel_mse"] < 0.1
     print(f"happy_buddha: mean ratio to path: pm {m['pm_vs_reference']['mean_ratio']:.4f}, "
           f"partpm {m['partpm_vs_reference']['mean_ratio']:.4f}")
     assert abs(m["pm_vs_reference"]["mean_ratio"] - 1) < 0.04
-    assert abs(m["partpm_vs_reference"]["mean_ratio"] - 1) < 0.07
+    assert 0.93 < m["partpm_vs_reference"]["mean_ratio"] < 1.0
     assert m["partpm_vs_pm"]["max_block_error_share"] < 0.35
     assert abs(result["mean_knn_radius"] / result["radius"] - 1) < 0.05
 

@@ -32,10 +32,13 @@ def block_rel_mse(img, ref, block=4):
     return float(np.mean((a - b) ** 2 / (b ** 2 + 1e-2 * ref.mean() ** 2)))
 
 
-# Measured with 400k photons, r = 0.05 (half a pixel), 16 spp against 1024 spp: mean ratios
-# 0.991 (envmap) to 1.001, block relMSE 0.00015 (spot) to 0.0051 (constant sky: its photons
-# are the sparsest). The 3% bound on the mean is the one asked for; 0.02 on the block relMSE
-# is 4x the worst seen, and a black image scores about 1. Before directions were normalised,
+# Measured with 400k photons, r = 0.05 (half a pixel), 16 spp against 1024 spp, emitters
+# hidden: mean ratios 0.989 (rotated envmap) to 1.001, block relMSE 0.00015 (spot) to 0.0051
+# (constant sky: its photons are the sparsest). The 3% bound on the mean is the one asked
+# for, and with the emitters hidden it is 3% of the photons' light: photons 5% too bright
+# read 1.042-1.046 on the sphere and mesh lights (with the emitters in view, 10% too bright
+# passed on the sphere, 1.021). 0.02 on the block relMSE is 4x the worst seen, and a black
+# image scores about 1. Before directions were normalised,
 # the scaled projector's mean ratio was 0.50. (At r = 0.1 the disc blurs the hard edges of
 # the projector's and the directional area light's patches over whole tiles: 0.026-0.079.)
 # The rotated environment map measured 0.989 (relMSE 0.0046); where its photons left from
@@ -43,9 +46,12 @@ def block_rel_mse(img, ref, block=4):
 @pytest.mark.parametrize("kind", EMITTER_KINDS)
 def test_emitter_power_matches_the_reference(kind, textures):
     scene = emitter_scene(kind, textures)
-    ref = render(scene, mi.load_dict(reference_integrator(kind)), seed=1, spp=1024)
+    # Emitters hidden in both: the pixels that see one (up to 77% of the image's light, for
+    # the visible sphere) render alike either way and would dilute an error of the photons.
+    ref = render(scene, mi.load_dict({**reference_integrator(kind), "hide_emitters": True}),
+                 seed=1, spp=1024)
     integrator = mi.load_dict({"type": "partpm", "photon_count": 400_000, "max_depth": 2,
-                               "radius": 0.05})
+                               "radius": 0.05, "hide_emitters": True})
     img = render(scene, integrator, spp=16)
     ratio, err = img.mean() / ref.mean(), block_rel_mse(img, ref)
     print(f"{kind}: mean ratio {ratio:.4f}, block relMSE {err:.5f}")
