@@ -765,3 +765,76 @@ def test_a_final_gather_that_finds_nothing_says_where_it_searched(caplog):
         caplog.text
     assert "the gather rays met no surface that stores photons within max_depth" in \
         caplog.text
+
+
+def test_converge_gives_the_photon_mappers_the_props_asked_for(tmp_path, capsys, monkeypatch):
+    """``partpm converge --direct nee --kernel simpson --caustic-photons N``: every partpm
+    render (warm-up included) gets all three, every pm render the two it takes, path none;
+    converge.json and the table say which. A value the plugins refuse is refused before any
+    rendering, naming it."""
+    made = []
+    load = mi.load_dict
+
+    def recorded(desc, *args, **kwargs):
+        if isinstance(desc, dict) and desc.get("type") in ("partpm", "pm", "path"):
+            made.append(dict(desc))
+        return load(desc, *args, **kwargs)
+    monkeypatch.setattr(mi, "load_dict", recorded)
+    out = tmp_path / "v"
+    assert main(["converge", "cornell_box_diffuse", "--resolution", "8x8", "--reference-spp",
+                 "4", "--time", "0.01", "--photons", "2000", "--direct", "nee", "--kernel",
+                 "simpson", "--caustic-photons", "1000", "--out", str(out)]) == 0
+    table = capsys.readouterr().out
+    kinds = {d["type"] for d in made}
+    assert kinds == {"partpm", "pm", "path"}, kinds
+    for desc in made:
+        if desc["type"] == "partpm":
+            assert (desc["direct"], desc["kernel"], desc["caustic_photon_count"]) == \
+                ("nee", "simpson", 1000), desc
+        elif desc["type"] == "pm":
+            assert (desc["direct"], desc["kernel"]) == ("nee", "simpson") and \
+                "caustic_photon_count" not in desc, desc
+        else:
+            assert "direct" not in desc and "kernel" not in desc, desc
+    s = json.loads((out / "converge.json").read_text())["settings"]
+    assert s["props"] == {"direct": "nee", "kernel": "simpson"}
+    assert s["partpm_props"] == {"caustic_photon_count": 1000}
+    assert "partpm and pm: direct = nee, kernel = simpson; partpm: caustic_photon_count = " \
+           "1000" in table
+    made.clear()
+    # A final gather needs direct = nee: said before the reference is rendered.
+    assert main(["converge", "cornell_box_diffuse", "--resolution", "8x8", "--final-gather",
+                 "4", "--out", str(tmp_path / "w")]) == 2
+    err = capsys.readouterr().err
+    assert "--final-gather 4 needs --direct 'nee'" in err, err
+    assert not (tmp_path / "w" / "reference.exr").exists()
+    assert main(["converge", "cornell_box_diffuse", "--caustic-radius", "0.1", "--out",
+                 str(tmp_path / "w")]) == 2
+    assert "--caustic-photons" in capsys.readouterr().err
+
+
+def test_a_converge_curve_that_ends_early_gives_no_error_after_it():
+    """The error at a time is read off a method's curve between its runs: a curve that
+    stopped before the time limit (its next render did not fit in memory) said its last
+    error for the time limit; it now gives none there, and the run records where it ended."""
+    from mi_partpm.experiments import converge, readme
+    rows = [{"method": "pm", "seconds": t, "rel_mse": e, "setting": ""}
+            for t, e in ((1.0, 0.04), (4.0, 0.02), (15.2, 0.01))] + \
+           [{"method": "path", "seconds": t, "rel_mse": e, "setting": ""}
+            for t, e in ((2.0, 0.01), (30.0, 0.001))]
+    assert converge._error_at(rows, "pm", 2.0) == pytest.approx(0.04 * 0.5 ** 0.5)
+    assert converge._error_at(rows, "pm", 20.0) is None
+    assert converge._error_at(rows, "pm", 0.5) is None
+    assert converge._error_at(rows, "path", 20.0) is not None
+    settings = {"scene": "x", "seconds": 20.0, "resolution": [8, 8], "reference_spp": 16,
+                "methods": ["pm", "path"], "photons": 1000, "maps": 2, "spp": 1,
+                "alpha": 0.7, "k": 50, "props": {"direct": "nee"}, "partpm_props": {}}
+    result = {"settings": settings, "rows": rows, "ends": {"pm": 15.2},
+              "at": {"5.0": {m: converge._error_at(rows, m, 5.0) for m in ("pm", "path")},
+                     "20.0": {m: converge._error_at(rows, m, 20.0) for m in ("pm", "path")}}}
+    table = converge.format_converge(result)
+    assert "pm's curve ends at 15.2 s" in table and "partpm and pm: direct = nee" in table
+    block = readme.format_converge({"converge_x": {**result, "ends": {}},
+                                    "converge_x_nee": result}, scenes=("x",))
+    assert "| pm, more photons, direct = nee | " in block
+    assert "pm, more photons, direct = nee on x at 15.2 s" in block

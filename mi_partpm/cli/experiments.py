@@ -219,14 +219,28 @@ def run_converge(args) -> int:
     if not setup(args):
         return 0
     from ..experiments.converge import ConvergeSettings, format_converge, run_converge as run
+    if (args.caustic_radius or args.caustic_radius_fraction) and not args.caustic_photons:
+        raise UsageError("--caustic-radius and --caustic-radius-fraction are the caustic "
+                         "maps' radius: they need caustic maps (--caustic-photons N)")
+    props = {k: v for k, v in (("direct", args.direct), ("kernel", args.kernel),
+                               ("glossy", args.glossy),
+                               ("glossy_samples", args.glossy_samples)) if v is not None}
+    partpm_props = {k: v for k, v in (
+        ("caustic_photon_count", args.caustic_photons), ("caustic_radius", args.caustic_radius),
+        ("caustic_radius_fraction", args.caustic_radius_fraction),
+        ("final_gather", args.final_gather)) if v}
     settings = ConvergeSettings(
         scene=args.scene, seconds=args.time, resolution=args.resolution, spp=args.spp,
         photons=args.photons, maps=args.maps, radius_fraction=args.radius_fraction,
         alpha=args.alpha, k=args.k, reference_spp=args.reference_spp,
         methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
-        seed=args.seed, data_dir=args.data)
+        seed=args.seed, data_dir=args.data, props=props, partpm_props=partpm_props)
     with user_errors(in_settings):
-        settings.check()
+        try:
+            settings.check()
+        except RuntimeError as e:       # a plugin refused a prop (Mitsuba wraps its error)
+            from .render import in_options
+            raise UsageError(in_options(last_line(e))) from None
     # (path's reference splits its own; partpm's eye paths keep their state between passes)
     check_eye_pass(settings.resolution, settings.spp, kept="partpm" in settings.methods)
     check_experiment_scene(args.scene, "converge")

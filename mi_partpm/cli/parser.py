@@ -233,6 +233,10 @@ def _experiment_options(sub):
                    help="partpm's alpha (default 0.7)")
     v.add_argument("--k", type=positive_int("--k", 2, MAX_K), default=50,
                    help="pm's k (default 50)")
+    v.add_argument("--direct", choices=("photons", "nee"),
+                   help="direct light of both photon mappers: from the maps (their default) or "
+                        "by emitter and BSDF sampling with MIS, as path")
+    _quality_options(v)
     v.add_argument("--reference-spp", type=positive_int("--reference-spp"), default=8192,
                    help="samples per pixel of the path-traced reference (default 8192)")
     v.add_argument("--methods", default="partpm,pm,path",

@@ -35,7 +35,7 @@ from ..props import check_choice, check_float, check_int
 from ..scenes import check_scene, load_scene
 from ..timing import timed
 from .provenance import code_version, scene_digest
-from .reference import path_in_chunks
+from .reference import caustics_path_misses, path_in_chunks
 
 __all__ = ["CompareSettings", "calibrate_k", "run_compare", "format_table"]
 
@@ -183,6 +183,9 @@ def run_compare(settings: CompareSettings, out_dir, progress=print) -> dict:
     scene = load_scene(s.scene, resolution=s.resolution, spp=s.spp, data_dir=s.data_dir,
                        **s.extra)
     check_scene(scene, s.scene)
+    misses = caustics_path_misses(scene)
+    if misses:
+        log.warning("%s", misses)
     radius = fixed_radius(scene, None, s.radius_fraction)
     common = {"photon_count": s.photons, "seed": s.seed, "direct": s.direct}
     k, calibrated_r = s.k, None
@@ -230,6 +233,7 @@ def run_compare(settings: CompareSettings, out_dir, progress=print) -> dict:
         "best": best_desc(s) if s.best else None,
         "code": code_version(),
         "scene_sha256": scene_digest(s.scene, s.data_dir),
+        "reference_misses": misses,
     }
     _report(out, s, images, result)
     return result
@@ -317,4 +321,6 @@ def format_table(result: dict) -> str:
                      f"{tile['col']}) holds {tile['share']:.3f} of the paper configuration's "
                      f"error against path, and {tile['share_other']:.3f} of the best "
                      f"configuration's")
+    if result.get("reference_misses"):
+        lines.append(f"warning: {result['reference_misses']}")
     return "\n".join(lines)

@@ -19,6 +19,13 @@ Its own noise is estimated from its two halves (the even and the odd chunks,
 - **pm**: single-pass renders of 10^4, 2 x 10^4, 4 x 10^4, ... photons with k nearest, until
   one takes longer than ``seconds``.
 
+``props`` (direct light, kernel, glossy surfaces: :data:`SHARED_PROPS`) go to both photon
+mappers, ``partpm_props`` (caustic maps, final gather: :data:`PARTPM_PROPS`) to partpm alone,
+so the curves can be those of the settings a user renders with. Where the scene holds light
+that ``path`` cannot render (:func:`~.reference.caustics_path_misses`), the run warns and
+records it (``reference_misses``). A curve that ends before ``seconds`` (a render that does
+not fit in memory) has no error after its last point (``ends``).
+
 Each method runs once untimed at a tiny size first, so no curve pays for compiling kernels.
 The error is the relative MSE of :func:`mi_partpm.experiments.metrics.rel_mse` on the linear,
 unclamped images. Writes ``converge.csv`` (method, seconds, relMSE, setting),
@@ -30,7 +37,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional, Tuple
 
@@ -40,13 +47,13 @@ import numpy as np
 
 from . import metrics
 from .provenance import code_version, scene_digest
-from .reference import noise_rel_mse, path_in_chunks
+from .reference import caustics_path_misses, noise_rel_mse, path_in_chunks
 from ..props import check_float, check_int
 from ..scenes import check_scene, load_scene
 from ..timing import timed
 
 __all__ = ["ConvergeSettings", "run_converge", "format_converge", "path_reference",
-           "METHODS", "CHUNK_SPP"]
+           "METHODS", "CHUNK_SPP", "SHARED_PROPS", "PARTPM_PROPS", "settings_text"]
 
 log = logging.getLogger("mi_partpm")
 
@@ -55,6 +62,11 @@ METHODS = ("partpm", "pm", "path")
 
 #: Samples per pixel of one chunk of the reference (rendered and averaged chunk by chunk).
 CHUNK_SPP = 64
+
+#: Props a run may give both photon mappers, and props for partpm alone.
+SHARED_PROPS = ("direct", "kernel", "glossy", "glossy_samples")
+PARTPM_PROPS = ("caustic_photon_count", "caustic_radius", "caustic_radius_fraction",
+                "final_gather")
 
 
 @dataclass
@@ -74,6 +86,8 @@ class ConvergeSettings:
     methods: Tuple[str, ...] = METHODS
     seed: int = 0
     data_dir: Optional[str] = None
+    props: dict = field(default_factory=dict)          # both photon mappers (SHARED_PROPS)
+    partpm_props: dict = field(default_factory=dict)   # partpm alone (PARTPM_PROPS)
 
     def check(self):
         check_float("seconds", self.seconds, low=0.0)
@@ -95,6 +109,31 @@ class ConvergeSettings:
         if twice:
             raise ValueError(f"methods must name each method once, got {', '.join(twice)} "
                              f"more than once")
+        for given, allowed, name in ((self.props, SHARED_PROPS, "props"),
+                                     (self.partpm_props, PARTPM_PROPS, "partpm_props")):
+            unknown = sorted(set(given) - set(allowed))
+            if unknown:
+                raise ValueError(f"{name} must be some of {', '.join(allowed)}, got "
+                                 f"{', '.join(unknown)}")
+        # Every value as the plugins check them, before any rendering.
+        mi.load_dict({**self._partpm_desc(), "passes": 2})
+        mi.load_dict(self._pm_desc(max(PM_START, 4 * self.k)))
+
+    def _partpm_desc(self) -> dict:
+        desc = {"type": "partpm", "photon_count": self.photons, "map_count": self.maps,
+                "alpha": self.alpha, "seed": self.seed, **self.props, **self.partpm_props}
+        if self.radius_fraction is not None:
+            desc["radius_fraction"] = self.radius_fraction
+        return desc
+
+    def _pm_desc(self, photons: int) -> dict:
+        return {"type": "pm", "photon_count": photons, "k": self.k, "seed": self.seed,
+                **self.props}
+
+
+def settings_text(props: dict) -> str:
+    """The props a run gave the photon mappers, as words for a label ("" for none)."""
+    return ", ".join(f"{k} = {v}" for k, v in props.items())
 
 
 def _scene(s: ConvergeSettings, spp: int = 1):
@@ -152,10 +191,7 @@ def _json_or_none(path: Path):
 
 def _partpm(s: ConvergeSettings, ref, say, out: Path) -> list:
     scene = _scene(s, s.spp)
-    desc = {"type": "partpm", "photon_count": s.photons, "map_count": s.maps,
-            "alpha": s.alpha, "seed": s.seed}
-    if s.radius_fraction is not None:
-        desc["radius_fraction"] = s.radius_fraction
+    desc = s._partpm_desc()
     mi.render(_scene(s, 1), integrator=mi.load_dict({**desc, "passes": 2}))   # warm-up
     rows = []
     checkpoints = {1, 2, 3, 4} | {int(round(2 ** (e / 2))) for e in range(4, 60)}
@@ -239,8 +275,7 @@ def _pm(s: ConvergeSettings, ref, say, out: Path) -> list:
     scene = _scene(s, s.spp)
 
     def render(photons):
-        integrator = mi.load_dict({"type": "pm", "photon_count": photons, "k": s.k,
-                                   "seed": s.seed})
+        integrator = mi.load_dict(s._pm_desc(photons))
         img, seconds = timed(lambda: mi.render(scene, integrator=integrator, seed=s.seed))
         return _image(img), seconds
     # From 10,000 photons, or 4 k: the warm-up's quarter of it holds k photons.
@@ -253,6 +288,9 @@ def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
     s, say = settings, progress or (lambda *a: None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    misses = caustics_path_misses(_scene(s))
+    if misses:
+        log.warning("%s", misses)
     ref, noise, reused = path_reference(s, out, say)
     if noise is not None:
         say(f"reference: its own noise, relMSE about {noise:.3g} against the truth (from its "
@@ -268,7 +306,10 @@ def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
               # (a method writes its last image when it has a row)
               "images": [f"{m}.exr" for m in s.methods if any(r["method"] == m for r in rows)],
               "at": {str(t): {m: _error_at(rows, m, t) for m in s.methods}
-                     for t in sorted({5.0, s.seconds}) if t <= s.seconds}}
+                     for t in sorted({5.0, s.seconds}) if t <= s.seconds},
+              "ends": {m: _last_time(rows, m) for m in s.methods
+                       if _last_time(rows, m) is not None and _last_time(rows, m) < s.seconds},
+              "reference_misses": misses}
     with open(out / "converge.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["method", "seconds", "rel_mse", "setting"])
         writer.writeheader()
@@ -278,11 +319,17 @@ def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
     return result
 
 
+def _last_time(rows, method: str):
+    """The seconds of ``method``'s last run (None without one)."""
+    return max((r["seconds"] for r in rows if r["method"] == method), default=None)
+
+
 def _error_at(rows, method: str, seconds: float):
     """The error of ``method`` at ``seconds``: log-log interpolation between its runs (None
-    before its first run)."""
+    before its first run and after its last: a curve that stopped early, its next render
+    not fitting in memory, says nothing of later times)."""
     pts = sorted((r["seconds"], r["rel_mse"]) for r in rows if r["method"] == method)
-    if not pts or seconds < pts[0][0]:
+    if not pts or seconds < pts[0][0] or seconds > pts[-1][0]:
         return None
     t = np.log([p[0] for p in pts])
     e = np.log([p[1] for p in pts])
@@ -295,9 +342,13 @@ def _plot(rows, path, s: ConvergeSettings, noise=None):
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(5.5, 4.2))
     styles = {"partpm": "o-", "pm": "s--", "path": "^-"}
+    shared = settings_text(s.props)
     labels = {"partpm": f"partpm, progressive ({s.maps} maps, {s.photons:,} photons and "
-                        f"{s.spp} spp per pass)",
-              "pm": f"pm (k = {s.k}), more photons", "path": "Mitsuba path, more spp"}
+                        f"{s.spp} spp per pass"
+                        + "".join(f", {t}" for t in (shared, settings_text(s.partpm_props)) if t)
+                        + ")",
+              "pm": f"pm (k = {s.k}{', ' + shared if shared else ''}), more photons",
+              "path": "Mitsuba path, more spp"}
     for method in s.methods:
         pts = sorted((r["seconds"], r["rel_mse"]) for r in rows if r["method"] == method)
         if pts:
@@ -330,6 +381,15 @@ def format_converge(result) -> str:
             v = _error_at(result["rows"], m, t)
             cells.append(f"{v:12.5f}" if v is not None else f"{'-':>12}")
         lines.append(f"{m:8} " + " ".join(cells))
+    for m, last in result.get("ends", {}).items():
+        lines.append(f"({m}'s curve ends at {last:.1f} s: its next render did not fit in "
+                     f"memory)")
     if result.get("reference_rel_mse") is not None:
         lines.append(f"(the reference's own noise: relMSE about {result['reference_rel_mse']:.3g})")
+    given = [f"{who}: {settings_text(props)}" for who, props in (
+        ("partpm and pm", s.get("props", {})), ("partpm", s.get("partpm_props", {}))) if props]
+    if given:
+        lines.append("(" + "; ".join(given) + ")")
+    if result.get("reference_misses"):
+        lines.append(f"(warning: {result['reference_misses']})")
     return "\n".join(lines)

@@ -330,18 +330,37 @@ METHOD_LABELS = {"partpm": "partpm, progressive", "pm": "pm, more photons",
                  "path": "path, more samples"}
 
 
-def format_converge(results: dict, scenes=("cornell_box", "caustic_glass"),
+def _converge_label(method: str, settings: dict) -> str:
+    """A method's name in the table, with the props its run gave it."""
+    from .converge import settings_text
+    props = {} if method == "path" else dict(settings.get("props", {}))
+    if method == "partpm":
+        props.update(settings.get("partpm_props", {}))
+    return ", ".join(t for t in (METHOD_LABELS.get(method, method), settings_text(props)) if t)
+
+
+def format_converge(results: dict, scenes=("cornell_box", "caustic_glass",
+                                           "cornell_box_diffuse"),
                     images: str = "") -> str:
     """relMSE against path of every method at the times ``converge.json`` interpolates
-    (5 s and the time limit), per scene."""
+    (5 s and the time limit), per scene: its run, then its run with other props
+    (``converge_<scene>_nee``) where there is one."""
     runs = [results[f"converge_{scene}"] for scene in scenes]
     times = sorted({float(t) for r in runs for t in r["at"]})
-    rows = []
+    rows, ended = [], []
     for scene, run in zip(scenes, runs):
-        at = {float(t): v for t, v in run["at"].items()}
-        for i, method in enumerate(run["settings"]["methods"]):
-            rows.append([scene if i == 0 else "", METHOD_LABELS.get(method, method)]
-                        + [_or_dash(at.get(t, {}).get(method), ".3g") for t in times])
+        first = True
+        for each in (run, results.get(f"converge_{scene}_nee")):
+            if each is None:
+                continue
+            at = {float(t): v for t, v in each["at"].items()}
+            for method in each["settings"]["methods"]:
+                label = _converge_label(method, each["settings"])
+                rows.append([scene if first else "", label]
+                            + [_or_dash(at.get(t, {}).get(method), ".3g") for t in times])
+                first = False
+                if method in each.get("ends", {}):
+                    ended.append(f"{label} on {scene} at {each['ends'][method]:.1f} s")
     s = runs[0]["settings"]
     text = _table(["scene", "method"] + [f"relMSE at {t:g} s" for t in times],
                   "ll" + "r" * len(times), rows)
@@ -353,6 +372,9 @@ def format_converge(results: dict, scenes=("cornell_box", "caustic_glass"),
     if all(v is not None for _, v in noise):
         text += (" The references' own noise, estimated from their halves: relMSE about "
                  + ", ".join(f"{v:.2g} ({scene})" for scene, v in noise) + ".")
+    if ended:
+        text += (" A curve ended before the time limit (its next render did not fit in "
+                 "memory): " + "; ".join(ended) + ".")
     if images:
         text += "\n\n" + " ".join(
             f"![error against time, {scene}]({images}converge_{scene}.png)" for scene in scenes)
@@ -448,8 +470,9 @@ BLOCKS = {b.name: b for b in (
     Block("compare", ("compare_cornell_box", "compare_happy_buddha"), format_compare),
     Block("compare_best", ("compare_cornell_box", "compare_happy_buddha",
                            "compare_glossy_spheres"), format_compare_best, images=True),
-    Block("converge", ("converge_cornell_box", "converge_caustic_glass"), format_converge,
-          images=True),
+    Block("converge", ("converge_cornell_box", "converge_cornell_box_nee",
+                       "converge_caustic_glass", "converge_cornell_box_diffuse",
+                       "converge_cornell_box_diffuse_nee"), format_converge, images=True),
     Block("converge_long", ("converge_cornell_box_long",), format_converge_long, images=True),
     Block("speedup", ("speedup_cornell_box", "speedup_happy_buddha"), format_speedup),
     Block("bench", ("bench",), format_bench),

@@ -11,8 +11,10 @@ own folder under the output directory (``out/figures`` by default):
   wide runs (n up to 1024 maps at 128 x 128, one repeat);
 - ``hwsim_*``: the PE-array simulator on those workloads (calibration checked across scenes);
 - ``bench``, ``scaling_cornell_box`` (MPI, 1 and 2 ranks);
-- ``converge_*``: error against time on the Cornell box and the caustic glass (25 s each),
-  and a 150-s progressive run of partpm alone (its error after 4 and 64 passes);
+- ``converge_*``: error against time on the Cornell box, the caustic glass and the diffuse
+  Cornell box (25 s each; on both Cornell boxes the photon mappers again with direct light
+  by emitter sampling, ``--direct nee``, against the same reference), and a 150-s
+  progressive run of partpm alone (its error after 4 and 64 passes);
 - ``notebooks``: the three notebooks executed at the paper's size and saved with their
   outputs; they read the runs above back instead of running them again.
 
@@ -60,7 +62,10 @@ NOTEBOOKS = ("01_image_comparison.ipynb", "02_speedup.ipynb", "03_hwsim.ipynb")
 
 PAPER_SCENES = ("cornell_box", "happy_buddha")
 COMPARE_SCENES = PAPER_SCENES + ("glossy_spheres",)
-CONVERGE_SCENES = ("cornell_box", "caustic_glass")
+CONVERGE_SCENES = ("cornell_box", "caustic_glass", "cornell_box_diffuse")
+#: The converge scenes run a second time with direct light by emitter sampling (step
+#: ``converge_<scene>_nee``: the photon mappers only, against the first run's reference).
+CONVERGE_NEE_SCENES = ("cornell_box", "cornell_box_diffuse")
 
 
 @dataclass(frozen=True)
@@ -175,6 +180,11 @@ def steps(smoke: bool = False) -> list:
         out.append(Step(f"converge_{scene}", ("converge", scene, *z["converge"], "--out",
                                               f"{{out}}/converge_{scene}"), "converge.json",
                         images=(("converge.png", f"converge_{scene}.png"),)))
+    for scene in CONVERGE_NEE_SCENES:
+        out.append(Step(f"converge_{scene}_nee", (
+            "converge", scene, *z["converge"], "--direct", "nee", "--methods", "partpm,pm",
+            "--out", f"{{out}}/converge_{scene}_nee"), "converge.json",
+            reference_from=f"converge_{scene}"))
     out.append(Step("converge_cornell_box_long", (
         "converge", "cornell_box", *z["converge_long"], "--out",
         "{out}/converge_cornell_box_long"), "converge.json",
