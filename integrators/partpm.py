@@ -252,8 +252,39 @@ class PartPMIntegrator(PhotonMapper):
                                     self.map_count)
 
     def search_radius(self, scene: mi.Scene):
-        """The fixed radius r of eq. (2) for ``scene``."""
-        return fixed_radius(scene, self.params.radius, self.radius_fraction)
+        """The fixed radius r of eq. (2) for ``scene``. The caustic maps' radius is found
+        here too (``caustic_search_radius``), and both are checked against what the passes
+        make of them, so a radius that cannot render is refused before any photon is
+        traced."""
+        r = fixed_radius(scene, self.params.radius, self.radius_fraction)
+        if self.passes > 1:
+            check_first_pass(r, self.alpha)
+            if self.final_gather and self.passes < UNTIL_TIME_LIMIT:
+                check_schedule(r, self.alpha, self.passes)
+        self.caustic_search_radius = self._caustic_radius(scene) \
+            if self.caustic_photon_count else None
+        return r
+
+    def _caustic_radius(self, scene: mi.Scene) -> float:
+        """The caustic maps' radius: ``caustic_radius``, a fraction of the scene, or a quarter
+        of the global maps' radius (the radius given, or a quarter of its fraction)."""
+        if self.caustic_radius is None and self.caustic_radius_fraction is None and \
+                self.params.radius is not None:
+            r = self.params.radius / 4          # a quarter of the global radius given
+        elif self.caustic_radius_fraction is not None:
+            r = fixed_radius(scene, self.caustic_radius, self.caustic_radius_fraction,
+                             ("caustic_radius", "caustic_radius_fraction"))
+        else:
+            r = fixed_radius(scene, self.caustic_radius, self.radius_fraction / 4,
+                             ("caustic_radius", "radius_fraction"),
+                             f"a quarter of radius_fraction = {self.radius_fraction:g}")
+        if r < MIN_RADIUS:
+            raise ValueError(f"the caustic maps' radius, a quarter of radius = "
+                             f"{self.params.radius:g}, is {r:.3g}: {below_min_radius()} "
+                             f"(give caustic_radius)")
+        if self.passes > 1:
+            check_first_pass(r, self.alpha, "caustic maps' radius", "caustic_radius")
+        return r
 
     @property
     def radius_fraction(self) -> float:
@@ -304,11 +335,6 @@ class PartPMIntegrator(PhotonMapper):
         gather, at the gather rays' hits), and the caustic maps' with their own radius."""
         terms = []
         by_name = {layer.name: layer for layer in layers}
-        progressive = self.passes > 1
-        if progressive:
-            check_first_pass(self.radius, self.alpha)
-            if self.final_gather and self.passes < UNTIL_TIME_LIMIT:
-                check_schedule(self.radius, self.alpha, self.passes)
         if self.final_gather:
             state = RadianceSum.start(width)
             terms.append(Term("global", state, lambda points, w: self._gather(
@@ -316,22 +342,7 @@ class PartPMIntegrator(PhotonMapper):
         else:
             terms.append(self._points_term("global", by_name["global"], width, self.radius))
         if "caustic" in by_name:
-            if self.caustic_radius is None and self.caustic_radius_fraction is None and \
-                    self.params.radius is not None:
-                r = self.params.radius / 4          # a quarter of the global radius given
-            elif self.caustic_radius_fraction is not None:
-                r = fixed_radius(scene, self.caustic_radius, self.caustic_radius_fraction,
-                                 ("caustic_radius", "caustic_radius_fraction"))
-            else:
-                r = fixed_radius(scene, self.caustic_radius, self.radius_fraction / 4,
-                                 ("caustic_radius", "radius_fraction"),
-                                 f"a quarter of radius_fraction = {self.radius_fraction:g}")
-            if r < MIN_RADIUS:
-                raise ValueError(f"the caustic maps' radius, a quarter of radius = "
-                                 f"{self.params.radius:g}, is {r:.3g}: {below_min_radius()} "
-                                 f"(give caustic_radius)")
-            if progressive:
-                check_first_pass(r, self.alpha, "caustic maps' radius")
+            r = self.caustic_search_radius      # (found with the radius, before any work)
             self.stats["caustic_radius"] = r
             terms.append(self._points_term("caustic", by_name["caustic"], width, r))
         return terms

@@ -9,10 +9,12 @@ and registers their classes; ``import mi_partpm`` calls it and hooks it to every
 from __future__ import annotations
 
 import importlib
+import re
+from pathlib import Path
 
 import mitsuba as mi
 
-__all__ = ["register", "supported_variant", "check_variant", "PLUGINS"]
+__all__ = ["register", "supported_variant", "check_variant", "load_integrator", "PLUGINS"]
 
 #: Plugin name -> (module under mi_partpm.integrators, class name).
 PLUGINS = {
@@ -39,6 +41,35 @@ def check_variant(variant=None, hint="mi.set_variant('llvm_ad_rgb')"):
         raise ValueError(f"mi_partpm needs a JIT RGB or mono Mitsuba variant, the active one is "
                          f"{variant!r}; use one of: {', '.join(works)} (e.g. {hint})")
     return variant
+
+
+def load_integrator(desc: dict):
+    """``mi.load_dict(desc)``, where a plugin of this project that refuses a prop (its
+    ``ValueError``, which Mitsuba hands on as a RuntimeError holding the traceback's text)
+    raises that ValueError, with its message alone; any other error stays as it was (an
+    unknown plugin, Mitsuba's own errors)."""
+    try:
+        return mi.load_dict(desc)
+    except RuntimeError as e:
+        refused = plugin_refusal(str(e))
+        if refused is None:
+            raise
+        raise ValueError(refused) from None
+
+
+def plugin_refusal(text: str):
+    """The message of the ValueError a plugin of this project raised, from the text of
+    Mitsuba's RuntimeError around it (its last line ``ValueError: ...``, its innermost frame
+    in this package), or None for any other error."""
+    lines = text.strip().splitlines()
+    if not lines or not lines[-1].startswith("ValueError: "):
+        return None
+    frames = re.findall(r'File "([^"]+)"', text)
+    integrators = importlib.import_module("mi_partpm.integrators")
+    roots = (Path(__file__).resolve().parent, Path(integrators.__file__).resolve().parent)
+    if not frames or not any(Path(frames[-1]).resolve().is_relative_to(r) for r in roots):
+        return None
+    return lines[-1][len("ValueError: "):]
 
 
 def _unsupported(props):

@@ -154,22 +154,33 @@ def radius_schedule(radius: float, alpha: float, pass_index: int) -> float:
     return float(radius) * math.exp(_log_shrink(alpha, pass_index) / 2)
 
 
+#: Passes up to which :func:`_log_shrink` sums the factors' logarithms one by one.
+_SUMMED_PASSES = 4096
+
+
 def _log_shrink(alpha: float, pass_index: int) -> float:
-    """log(r_i^2 / r_0^2) of :func:`radius_schedule`: the product is
-    Gamma(i + 1) Gamma(1/alpha) / Gamma(i + 1/alpha), here in logarithms (no loop over the
-    passes, no underflow)."""
+    """log(r_i^2 / r_0^2) of :func:`radius_schedule`, in logarithms (no underflow): up to
+    :data:`_SUMMED_PASSES` passes the sum of the factors' logarithms, exact for any alpha;
+    past them Gamma(i + 1) Gamma(1/alpha) / Gamma(i + 1/alpha), whose log-gammas would
+    cancel each other's digits away for an alpha below about 1e-13 (there a radius is far
+    below the least long before)."""
+    if pass_index <= _SUMMED_PASSES:
+        return math.fsum(math.log(alpha * (j + 1)) - math.log1p(alpha * j)
+                         for j in range(pass_index))
     return math.lgamma(pass_index + 1) + math.lgamma(1 / alpha) - \
         math.lgamma(pass_index + 1 / alpha)
 
 
-def check_first_pass(radius: float, alpha: float, name: str = "radius"):
-    """A ValueError naming ``alpha`` and ``name`` where a progressive render's radius would
-    fall below :data:`~mi_partpm.kdtree.radius.MIN_RADIUS` in its first pass: an eye path
-    that finds photons keeps ``alpha`` of them, and its r^2 shrinks by ``alpha`` then."""
+def check_first_pass(radius: float, alpha: float, name: str = "radius", prop: str = None):
+    """A ValueError naming ``alpha`` and ``name`` (and ``prop``, the prop that sets it, where
+    ``name`` is not one) where a progressive render's radius would fall below
+    :data:`~mi_partpm.kdtree.radius.MIN_RADIUS` in its first pass: an eye path that finds
+    photons keeps ``alpha`` of them, and its r^2 shrinks by ``alpha`` then."""
     if float(radius) * float(alpha) ** 0.5 < MIN_RADIUS:
         raise ValueError(f"alpha = {alpha:g} shrinks the {name} {radius:g} to "
                          f"{radius * alpha ** 0.5:.3g} in the first pass, {below_min_radius()}: "
-                         f"raise alpha (SPPM uses 2/3) or the {name}")
+                         f"raise alpha (SPPM uses 2/3) or the {name}"
+                         + (f" ({prop})" if prop else ""))
 
 
 def check_schedule(radius: float, alpha: float, passes: int):

@@ -20,7 +20,8 @@ __all__ = ["PhotonMapParams", "check_int", "check_float", "check_bool", "check_c
            "read_int", "read_float", "read_bool", "read_choice", "read_photon_map_params",
            "DIRECT_MODES", "UNLIMITED_DEPTH", "segment_limit", "RADIUS_FRACTION",
            "PROGRESSIVE_RADIUS_FRACTION", "MAX_RADIUS", "KERNEL_NAMES", "GLOSSY_MODES",
-           "MAX_RAYS_PER_POINT", "PARTPM_ONLY", "PM_ONLY", "refuse_props"]
+           "MAX_RAYS_PER_POINT", "PARTPM_ONLY", "PM_ONLY", "refuse_props", "QUALITY_PROPS",
+           "PARTPM_QUALITY_PROPS"]
 
 #: ``max_depth`` of -1: no limit (Russian roulette ends the paths), as in Mitsuba.
 UNLIMITED_DEPTH = -1
@@ -150,6 +151,12 @@ PARTPM_ONLY = ("radius", "radius_fraction", "map_count", "passes", "alpha", "tim
                "final_gather", "maps_per_wave", "backend")
 #: pm's props, which partpm refuses by name.
 PM_ONLY = ("k", "count_kth", "max_radius")
+
+#: The quality props both photon mappers take (the command line's ``--direct``,
+#: ``--kernel``, ``--glossy``, ``--glossy-samples``), and those of partpm alone.
+QUALITY_PROPS = ("direct", "kernel", "glossy", "glossy_samples")
+PARTPM_QUALITY_PROPS = ("caustic_photon_count", "caustic_radius", "caustic_radius_fraction",
+                        "final_gather")
 
 
 def refuse_props(props, names, owner: str, why: str):

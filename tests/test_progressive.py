@@ -813,6 +813,107 @@ def test_converge_gives_the_photon_mappers_the_props_asked_for(tmp_path, capsys,
     assert "--caustic-photons" in capsys.readouterr().err
 
 
+def test_converge_refuses_options_for_methods_it_does_not_run(tmp_path, capsys, monkeypatch):
+    """An option of a method left out of --methods was taken and named in the table as if it
+    had been used (--direct nee with --methods path), and the settings' check built both
+    photon mappers whatever the methods. Now each such option is refused, naming it and the
+    methods, and only the plugins of the methods run are built."""
+    made = []
+    load = mi.load_dict
+
+    def recorded(desc, *args, **kwargs):
+        if isinstance(desc, dict):
+            made.append(desc.get("type"))
+        return load(desc, *args, **kwargs)
+    monkeypatch.setattr(mi, "load_dict", recorded)
+    base = ["converge", "cornell_box_diffuse", "--resolution", "8x8", "--reference-spp", "4",
+            "--time", "0.01", "--out", str(tmp_path / "v")]
+    for extra, said in (
+            (["--methods", "path", "--direct", "nee"],
+             "--methods must include partpm or pm for --direct nee"),
+            (["--methods", "pm,path", "--direct", "nee", "--final-gather", "4"],
+             "--methods must include partpm for --final-gather 4"),
+            (["--methods", "path", "--photons", "5000", "--alpha", "0.5"],
+             "--photons, --alpha apply to partpm, which --methods path does not run"),
+            (["--methods", "partpm,path", "--k", "20"],
+             "--k applies to pm, which --methods partpm,path does not run")):
+        assert main(base + extra) == 2, extra
+        err = capsys.readouterr().err
+        assert said in err, (extra, err)
+    assert not (tmp_path / "v" / "reference.exr").exists()
+    made.clear()
+    assert main(base + ["--methods", "path"]) == 0
+    assert "partpm" not in made and "pm" not in made, made
+    assert "partpm and pm" not in capsys.readouterr().out
+
+
+def test_converge_checks_partpms_radii_on_the_scene_before_the_reference(tmp_path, capsys):
+    """The caustic maps' radius depends on the scene: one too small for a search was found
+    by partpm's first pass, after the reference had been rendered, and the progressive
+    check's message named the radius but not the option that sets it."""
+    assert main(["converge", "cornell_box_diffuse", "--resolution", "8x8", "--methods",
+                 "partpm,path", "--caustic-photons", "1000", "--caustic-radius-fraction",
+                 "1e-17", "--out", str(tmp_path / "v")]) == 2
+    err = capsys.readouterr().err
+    assert "caustic maps' radius" in err and "--caustic-radius" in err, err
+    assert not (tmp_path / "v" / "reference.exr").exists()
+    # A progressive caustic radius that alpha shrinks below the least in the first pass
+    # (the global one stays above it): refused when the radius is found, naming the prop.
+    from mi_partpm.kdtree.radius import MIN_RADIUS
+    scene = mi_partpm.load_scene("cornell_box_diffuse", resolution=(8, 8), spp=1)
+    probe = mi.load_dict({"type": "partpm", "passes": 2, "caustic_photon_count": 100})
+    r = probe.search_radius(scene)
+    alpha = (2 * MIN_RADIUS / r) ** 2           # global: 2 x the least; caustic: half of it
+    integrator = mi.load_dict({"type": "partpm", "passes": 2, "caustic_photon_count": 100,
+                               "alpha": alpha})
+    with pytest.raises(ValueError, match=r"caustic maps' radius .* \(caustic_radius\)"):
+        integrator.search_radius(scene)
+
+
+def test_a_converge_curve_that_partpm_ends_says_why(tmp_path, capsys):
+    """partpm's progressive curve can end before the time limit when its next pass's radius
+    would be below the least a search takes (a final gather with a tiny alpha); the table
+    said every early end was memory."""
+    out = tmp_path / "v"
+    assert main(["converge", "cornell_box", "--methods", "partpm", "--time", "60",
+                 "--alpha", "0.001", "--final-gather", "1", "--direct", "nee",
+                 "--resolution", "8x8", "--photons", "500", "--reference-spp", "4",
+                 "--out", str(out)]) == 0
+    table = capsys.readouterr().out
+    result = json.loads((out / "converge.json").read_text())
+    assert result["ended_by"] == {"partpm": "radius"} and result["ends"]["partpm"] < 60
+    assert "its next pass's radius would be below the least a search takes" in table, table
+    assert "did not fit in memory" not in table
+
+
+def test_load_integrator_speaks_for_the_plugins_refusals_only():
+    """A plugin's refusal of a prop comes out of Mitsuba as a RuntimeError holding the
+    traceback; converge turned every RuntimeError of its check into a usage error. Now only
+    the project's own ValueError is one, with its message alone."""
+    from mi_partpm.plugins import load_integrator
+    with pytest.raises(ValueError) as refused:
+        load_integrator({"type": "partpm", "alpha": 3.0})
+    assert str(refused.value).startswith("alpha must be a finite number in (0.0, 1.0)")
+    with pytest.raises(RuntimeError, match="not found"):
+        load_integrator({"type": "no_such_integrator"})
+    with pytest.raises(RuntimeError, match="unreferenced property"):
+        load_integrator({"type": "partpm", "no_such_prop": 1})
+
+
+def test_the_radius_schedule_keeps_its_digits_for_any_alpha():
+    """Its log-gammas cancelled each other's digits for alpha below about 1e-16: the first
+    pass's radius came out unchanged (alpha 1e-17: a shrink of 1, not 1e-17)."""
+    from mi_partpm.progressive import radius_schedule
+    for alpha in (0.7, 1e-5, 1e-17):
+        assert radius_schedule(1.0, alpha, 1) == pytest.approx(alpha ** 0.5, rel=1e-12)
+        product = np.prod([alpha * (j + 1) / (alpha * j + 1) for j in range(50)])
+        assert radius_schedule(1.0, alpha, 50) == pytest.approx(product ** 0.5, rel=1e-9)
+    # Past the summed passes, the log-gamma form agrees with the sum where both hold.
+    assert radius_schedule(1.0, 0.7, 5000) == pytest.approx(
+        np.exp(0.5 * np.sum(np.log(0.7 * np.arange(1, 5001) / (0.7 * np.arange(5000) + 1)))),
+        rel=1e-9)
+
+
 def test_a_converge_curve_that_ends_early_gives_no_error_after_it():
     """The error at a time is read off a method's curve between its runs: a curve that
     stopped before the time limit (its next render did not fit in memory) said its last
@@ -830,11 +931,14 @@ def test_a_converge_curve_that_ends_early_gives_no_error_after_it():
                 "methods": ["pm", "path"], "photons": 1000, "maps": 2, "spp": 1,
                 "alpha": 0.7, "k": 50, "props": {"direct": "nee"}, "partpm_props": {}}
     result = {"settings": settings, "rows": rows, "ends": {"pm": 15.2},
+              "ended_by": {"pm": "memory"},
               "at": {"5.0": {m: converge._error_at(rows, m, 5.0) for m in ("pm", "path")},
                      "20.0": {m: converge._error_at(rows, m, 20.0) for m in ("pm", "path")}}}
     table = converge.format_converge(result)
-    assert "pm's curve ends at 15.2 s" in table and "partpm and pm: direct = nee" in table
+    assert "pm's curve ends at 15.2 s: its next render did not fit in memory" in table
+    assert "pm: direct = nee" in table and "partpm and pm" not in table   # (no partpm run)
     block = readme.format_converge({"converge_x": {**result, "ends": {}},
                                     "converge_x_nee": result}, scenes=("x",))
     assert "| pm, more photons, direct = nee | " in block
-    assert "pm, more photons, direct = nee on x at 15.2 s" in block
+    assert "pm, more photons, direct = nee on x at 15.2 s (its next render did not fit in " \
+           "memory)" in block

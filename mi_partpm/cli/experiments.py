@@ -219,28 +219,28 @@ def run_converge(args) -> int:
     if not setup(args):
         return 0
     from ..experiments.converge import ConvergeSettings, format_converge, run_converge as run
-    if (args.caustic_radius or args.caustic_radius_fraction) and not args.caustic_photons:
-        raise UsageError("--caustic-radius and --caustic-radius-fraction are the caustic "
-                         "maps' radius: they need caustic maps (--caustic-photons N)")
-    props = {k: v for k, v in (("direct", args.direct), ("kernel", args.kernel),
-                               ("glossy", args.glossy),
-                               ("glossy_samples", args.glossy_samples)) if v is not None}
-    partpm_props = {k: v for k, v in (
-        ("caustic_photon_count", args.caustic_photons), ("caustic_radius", args.caustic_radius),
-        ("caustic_radius_fraction", args.caustic_radius_fraction),
-        ("final_gather", args.final_gather)) if v}
+    from .render import apply_text, check_caustic_options, quality_props
+    check_caustic_options(args)
+    props, partpm_props = quality_props(args)
+    partpm_props = {k: v for k, v in partpm_props.items() if v}     # (0: none, as unset)
+    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    # Options left out take the settings' defaults; given, their method must be run.
+    given = {"partpm": {"spp": "--spp", "photons": "--photons", "maps": "--maps",
+                        "radius_fraction": "--radius-fraction", "alpha": "--alpha"},
+             "pm": {"k": "--k"}}
+    values = {key: getattr(args, key) for options in given.values() for key in options
+              if getattr(args, key) is not None}
     settings = ConvergeSettings(
-        scene=args.scene, seconds=args.time, resolution=args.resolution, spp=args.spp,
-        photons=args.photons, maps=args.maps, radius_fraction=args.radius_fraction,
-        alpha=args.alpha, k=args.k, reference_spp=args.reference_spp,
-        methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
-        seed=args.seed, data_dir=args.data, props=props, partpm_props=partpm_props)
+        scene=args.scene, seconds=args.time, resolution=args.resolution,
+        reference_spp=args.reference_spp, methods=methods, seed=args.seed,
+        data_dir=args.data, props=props, partpm_props=partpm_props, **values)
     with user_errors(in_settings):
-        try:
-            settings.check()
-        except RuntimeError as e:       # a plugin refused a prop (Mitsuba wraps its error)
-            from .render import in_options
-            raise UsageError(in_options(last_line(e))) from None
+        settings.check()                # (the methods named, and props for methods not run)
+    for method, options in given.items():
+        unused = [option for key, option in options.items() if key in values]
+        if unused and method not in methods:
+            raise UsageError(f"{apply_text(unused)} to {method}, which --methods "
+                             f"{','.join(methods)} does not run")
     # (path's reference splits its own; partpm's eye paths keep their state between passes)
     check_eye_pass(settings.resolution, settings.spp, kept="partpm" in settings.methods)
     check_experiment_scene(args.scene, "converge")

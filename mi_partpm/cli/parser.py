@@ -219,19 +219,19 @@ def _experiment_options(sub):
                         "run, take more; default 25)")
     v.add_argument("--resolution", type=parse_resolution, default=(160, 160),
                    help="film size WxH (default 160x160)")
-    v.add_argument("--spp", type=positive_int("--spp"), default=4,
+    v.add_argument("--spp", type=positive_int("--spp"),
                    help="partpm's eye samples per pixel and pass (default 4)")
-    v.add_argument("--photons", type=positive_int("--photons", high=MAX_RUN), default=100_000,
+    v.add_argument("--photons", type=positive_int("--photons", high=MAX_RUN),
                    help="partpm's photons per pass, in [1, 2^32) (default 100000; pm's "
                         "curve doubles its photons from 10000, or from 4 x k when that is more)")
-    v.add_argument("--maps", type=positive_int("--maps"), default=8,
+    v.add_argument("--maps", type=positive_int("--maps"),
                    help="partpm's maps (default 8)")
     v.add_argument("--radius-fraction", type=positive_float("--radius-fraction", 1.0),
                    help="partpm's initial radius over the scene (default: partpm's, 0.025 for "
                         "a progressive render)")
-    v.add_argument("--alpha", type=positive_float("--alpha", 1.0, high_open=True), default=0.7,
+    v.add_argument("--alpha", type=positive_float("--alpha", 1.0, high_open=True),
                    help="partpm's alpha (default 0.7)")
-    v.add_argument("--k", type=positive_int("--k", 2, MAX_K), default=50,
+    v.add_argument("--k", type=positive_int("--k", 2, MAX_K),
                    help="pm's k (default 50)")
     v.add_argument("--direct", choices=("photons", "nee"),
                    help="direct light of both photon mappers: from the maps (their default) or "

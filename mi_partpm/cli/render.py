@@ -15,12 +15,12 @@ from typing import Optional
 from .common import (UsageError, check_writable, interrupted, last_line, scene_parameters,
                      setup, write_atomic)
 
-__all__ = ["run_render", "integrator_desc", "format_ranks"]
+__all__ = ["run_render", "integrator_desc", "format_ranks", "quality_props", "apply_text"]
 
 log = logging.getLogger("mi_partpm")
 
 
-def _options(names, negated: bool = False) -> str:
+def apply_text(names, negated: bool = False) -> str:
     """'--a applies' or '--a, --b apply' ('does not apply', 'do not apply' if ``negated``)."""
     one = len(names) == 1
     verb = ("does not apply" if one else "do not apply") if negated else \
@@ -57,6 +57,35 @@ def in_options(message: str) -> str:
     return message
 
 
+#: The option that sets a prop, where it is not the prop's own name with dashes.
+_OPTION_NAMES = {"caustic_photon_count": "caustic_photons"}
+
+
+def quality_props(args) -> tuple:
+    """The props the quality options give (``--direct``, ``--kernel``, ``--glossy``,
+    ``--glossy-samples``; ``--caustic-photons``, ``--caustic-radius``,
+    ``--caustic-radius-fraction``, ``--final-gather``), as two dicts: those of both photon
+    mappers and those of partpm alone, each with the options given only (a zero given is
+    given)."""
+    from ..props import PARTPM_QUALITY_PROPS, QUALITY_PROPS
+    return tuple({prop: getattr(args, _OPTION_NAMES.get(prop, prop))
+                  for prop in props if getattr(args, _OPTION_NAMES.get(prop, prop)) is not None}
+                 for props in (QUALITY_PROPS, PARTPM_QUALITY_PROPS))
+
+
+def check_caustic_options(args):
+    """A caustic radius needs caustic maps."""
+    if (args.caustic_radius or args.caustic_radius_fraction) and not args.caustic_photons:
+        raise UsageError("--caustic-radius and --caustic-radius-fraction are the caustic "
+                         "maps' radius: they need caustic maps (--caustic-photons N)")
+
+
+def given_options(props: dict) -> list:
+    """The options that set ``props`` (those with a value other than 0: a zero asks for
+    none of the thing), as a user types them."""
+    return [PROP_OPTIONS[p] for p, v in props.items() if v]
+
+
 def integrator_desc(args) -> dict:
     """The ``mi.load_dict`` description of the integrator the options ask for (partpm
     unless ``--integrator`` names another)."""
@@ -69,7 +98,7 @@ def integrator_desc(args) -> dict:
             ("--radius", args.radius), ("--radius-fraction", args.radius_fraction),
             ("--k", args.k), ("--max-radius", args.max_radius)) if v is not None]
         if photon_options:
-            raise UsageError(f"{_options(photon_options)} to the photon mappers "
+            raise UsageError(f"{apply_text(photon_options)} to the photon mappers "
                              f"(--integrator partpm or pm), not to path")
     else:
         desc = {"type": args.integrator, "photon_count": args.photons or 100_000,
@@ -79,7 +108,7 @@ def integrator_desc(args) -> dict:
         ("--passes", args.passes), ("--alpha", args.alpha), ("--time", args.time),
         ("--checkpoint-every", args.checkpoint_every)) if v]
     if progressive_options and args.integrator != "partpm":
-        raise UsageError(f"{_options(progressive_options)} to --integrator partpm only (the "
+        raise UsageError(f"{apply_text(progressive_options)} to --integrator partpm only (the "
                          f"progressive photon mapper)")
     # As the integrator decides: a time limit alone runs passes until it; --passes 1 is one.
     progressive = (args.passes or 1) > 1 or (bool(args.time) and args.passes is None)
@@ -96,28 +125,21 @@ def integrator_desc(args) -> dict:
     if args.checkpoint_every and not args.time and args.checkpoint_every > args.passes:
         raise UsageError(f"--checkpoint-every {args.checkpoint_every} would write no "
                          f"checkpoint in {args.passes} passes: give K <= --passes")
+    shared, partpm_props = quality_props(args)
     if args.integrator != "path":
-        for key, value in (("kernel", args.kernel), ("glossy", args.glossy),
-                           ("glossy_samples", args.glossy_samples)):
-            if value is not None:
-                desc[key] = value
+        desc.update({k: v for k, v in shared.items() if k != "direct"})
     elif any(v is not None for v in (args.kernel, args.glossy, args.glossy_samples)):
         raise UsageError("--kernel, --glossy and --glossy-samples apply to the photon mappers "
                          "(--integrator partpm or pm)")
-    partpm_only = [o for o, v in (("--caustic-photons", args.caustic_photons),
-                                  ("--caustic-radius", args.caustic_radius),
-                                  ("--caustic-radius-fraction", args.caustic_radius_fraction),
-                                  ("--final-gather", args.final_gather)) if v]
+    partpm_only = given_options(partpm_props)
     if partpm_only and args.integrator != "partpm":
-        raise UsageError(f"{_options(partpm_only)} to --integrator partpm only")
-    if (args.caustic_radius or args.caustic_radius_fraction) and not args.caustic_photons:
-        raise UsageError("--caustic-radius and --caustic-radius-fraction are the caustic "
-                         "maps' radius: they need caustic maps (--caustic-photons N)")
+        raise UsageError(f"{apply_text(partpm_only)} to --integrator partpm only")
+    check_caustic_options(args)
     if args.integrator == "pm":
         unused = [o for o, v in (("--maps", args.maps), ("--radius", args.radius),
                                  ("--radius-fraction", args.radius_fraction)) if v]
         if unused:
-            raise UsageError(f"{_options(unused, negated=True)} to --integrator pm "
+            raise UsageError(f"{apply_text(unused, negated=True)} to --integrator pm "
                              f"(one map, k nearest photons: use --k, --max-radius)")
         if args.k is not None:
             desc["k"] = args.k
@@ -135,12 +157,7 @@ def integrator_desc(args) -> dict:
                            ("time_limit", args.time)):
             if value is not None:
                 desc[key] = value
-        for key, value in (("caustic_photon_count", args.caustic_photons),
-                           ("caustic_radius", args.caustic_radius),
-                           ("caustic_radius_fraction", args.caustic_radius_fraction),
-                           ("final_gather", args.final_gather)):
-            if value is not None:
-                desc[key] = value
+        desc.update(partpm_props)
         if args.radius is not None:
             desc["radius"] = args.radius
         elif args.radius_fraction is not None:
@@ -227,9 +244,10 @@ def run_render(args) -> int:
     integrator = None
     if not from_file or given:
         named = args.integrator is not None
+        from ..plugins import load_integrator
         try:
-            integrator = mi.load_dict(integrator_desc(args))
-        except (ValueError, RuntimeError) as e:
+            integrator = load_integrator(integrator_desc(args))
+        except (ValueError, RuntimeError) as e:    # (path's own props: Mitsuba's errors)
             raise UsageError(in_options(last_line(e))) from None
         except UsageError as e:
             if from_file and not named and from_file != args.integrator:

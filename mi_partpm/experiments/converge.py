@@ -48,12 +48,14 @@ import numpy as np
 from . import metrics
 from .provenance import code_version, scene_digest
 from .reference import caustics_path_misses, noise_rel_mse, path_in_chunks
-from ..props import check_float, check_int
+from ..plugins import load_integrator
+from ..props import PARTPM_QUALITY_PROPS, QUALITY_PROPS, check_float, check_int
 from ..scenes import check_scene, load_scene
 from ..timing import timed
 
 __all__ = ["ConvergeSettings", "run_converge", "format_converge", "path_reference",
-           "METHODS", "CHUNK_SPP", "SHARED_PROPS", "PARTPM_PROPS", "settings_text"]
+           "METHODS", "CHUNK_SPP", "SHARED_PROPS", "PARTPM_PROPS", "settings_text",
+           "ended_text"]
 
 log = logging.getLogger("mi_partpm")
 
@@ -64,9 +66,13 @@ METHODS = ("partpm", "pm", "path")
 CHUNK_SPP = 64
 
 #: Props a run may give both photon mappers, and props for partpm alone.
-SHARED_PROPS = ("direct", "kernel", "glossy", "glossy_samples")
-PARTPM_PROPS = ("caustic_photon_count", "caustic_radius", "caustic_radius_fraction",
-                "final_gather")
+SHARED_PROPS = QUALITY_PROPS
+PARTPM_PROPS = PARTPM_QUALITY_PROPS
+
+#: Why a curve ends before the time limit, by the reason its method gives.
+ENDED_BY = {"memory": "its next render did not fit in memory",
+            "radius": "its next pass's radius would be below the least a search takes",
+            "request": "it was asked to stop"}
 
 
 @dataclass
@@ -115,9 +121,29 @@ class ConvergeSettings:
             if unknown:
                 raise ValueError(f"{name} must be some of {', '.join(allowed)}, got "
                                  f"{', '.join(unknown)}")
+        # Props for a method the run does not render would be named in its table unused.
+        mappers = [m for m in ("partpm", "pm") if m in self.methods]
+        if self.props and not mappers:
+            raise ValueError(f"methods must include partpm or pm for "
+                             f"{settings_text(self.props)} (the photon mappers' props), got "
+                             f"{', '.join(self.methods)}")
+        if self.partpm_props and "partpm" not in self.methods:
+            raise ValueError(f"methods must include partpm for "
+                             f"{settings_text(self.partpm_props)} (partpm's props), got "
+                             f"{', '.join(self.methods)}")
         # Every value as the plugins check them, before any rendering.
-        mi.load_dict({**self._partpm_desc(), "passes": 2})
-        mi.load_dict(self._pm_desc(max(PM_START, 4 * self.k)))
+        if "partpm" in self.methods:
+            load_integrator({**self._partpm_desc(), "passes": 2})
+        if "pm" in self.methods:
+            load_integrator(self._pm_desc(max(PM_START, 4 * self.k)))
+
+    def check_scene(self, scene):
+        """What depends on the scene, before any rendering: partpm's radii (the caustic
+        maps' radius below the least a search takes, say), as its first pass would find
+        them."""
+        if "partpm" in self.methods:
+            load_integrator({**self._partpm_desc(), "time_limit": self.seconds}) \
+                .search_radius(scene)
 
     def _partpm_desc(self) -> dict:
         desc = {"type": "partpm", "photon_count": self.photons, "map_count": self.maps,
@@ -146,9 +172,9 @@ def _image(img) -> np.ndarray:
     return np.array(img, dtype=np.float64)[..., :3]
 
 
-def path_reference(s: ConvergeSettings, out: Path, say):
-    """Mitsuba's ``path`` at ``reference_spp``, averaged over chunks; cached in ``out``.
-    Returns (image, its estimated relative MSE against the truth or None for one chunk,
+def path_reference(s: ConvergeSettings, out: Path, say, scene=None):
+    """Mitsuba's ``path`` at ``reference_spp``, averaged over chunks, of ``scene`` (default:
+    loaded from the settings); cached in ``out``. Returns (image, its estimated relative MSE against the truth or None for one chunk,
     whether it was reused)."""
     # The scene by its files' contents: the same file named another way is the same scene.
     meta = {"scene_sha256": scene_digest(s.scene, s.data_dir),
@@ -168,7 +194,7 @@ def path_reference(s: ConvergeSettings, out: Path, say):
                 return image, recorded["noise_rel_mse"], True
             say(f"reference: {exr} is not {s.resolution[0]}x{s.resolution[1]}: rendering it "
                 f"again")
-    ref, _, halves = path_in_chunks(_scene(s), s.reference_spp, 1_000_003 + s.seed * 10_007,
+    ref, _, halves = path_in_chunks(scene or _scene(s), s.reference_spp, 1_000_003 + s.seed * 10_007,
                                     CHUNK_SPP, say=say, label="reference: path", halves=True)
     noise = noise_rel_mse(halves)
     # The record goes first and comes back last: an image cut short is never vouched for.
@@ -189,7 +215,7 @@ def _json_or_none(path: Path):
         return None
 
 
-def _partpm(s: ConvergeSettings, ref, say, out: Path) -> list:
+def _partpm(s: ConvergeSettings, ref, say, out: Path) -> tuple:
     scene = _scene(s, s.spp)
     desc = s._partpm_desc()
     mi.render(_scene(s, 1), integrator=mi.load_dict({**desc, "passes": 2}))   # warm-up
@@ -209,15 +235,17 @@ def _partpm(s: ConvergeSettings, ref, say, out: Path) -> list:
     integrator = mi.load_dict({**desc, "time_limit": s.seconds})     # passes until then
     integrator.on_pass = on_pass
     mi.render(scene, integrator=integrator, seed=s.seed)
-    return rows
+    stopped = integrator.stats.get("stopped_by")
+    return rows, None if stopped in (None, "time_limit") else stopped
 
 
 def _doubling(method: str, s: ConvergeSettings, ref, say, render, start: int, unit: str,
               out: Path):
     """Renders at ``start``, 2 ``start``, ... until one takes longer than ``seconds``; the
-    last image is written to ``out/<method>.exr``."""
+    last image is written to ``out/<method>.exr``. Returns the rows and why the curve
+    ended before ``seconds`` ("memory") or None."""
     render(max(1, start // 4))                    # warm-up
-    rows, amount, img = [], start, None
+    rows, amount, img, stopped = [], start, None, None
     while True:
         try:
             img, seconds = render(amount)
@@ -225,6 +253,7 @@ def _doubling(method: str, s: ConvergeSettings, ref, say, render, start: int, un
             if "MemoryGuardError" not in repr(e.__cause__) and "needs about" not in str(e):
                 raise
             say(f"{method}: {amount} {unit} do not fit in memory; the curve stops here")
+            stopped = "memory"
             break
         err = metrics.rel_mse(img, ref)
         rows.append({"method": method, "seconds": seconds, "rel_mse": err,
@@ -235,7 +264,7 @@ def _doubling(method: str, s: ConvergeSettings, ref, say, render, start: int, un
         amount *= 2
     if rows:                      # (img: the last render that ran)
         _write_image(img, out / f"{method}.exr")
-    return rows
+    return rows, stopped
 
 
 def _write_image(image, path: Path):
@@ -247,7 +276,7 @@ def _write_image(image, path: Path):
 PATH_CHUNK_SPP = 1024
 
 
-def _path(s: ConvergeSettings, ref, say, out: Path) -> list:
+def _path(s: ConvergeSettings, ref, say, out: Path) -> tuple:
     scene = _scene(s)
     integrator = mi.load_dict({"type": "path"})
 
@@ -256,7 +285,7 @@ def _path(s: ConvergeSettings, ref, say, out: Path) -> list:
     def render(spp):
         rendered.append(spp)
         return path_in_chunks(scene, spp, s.seed, PATH_CHUNK_SPP, integrator)
-    rows = _doubling("path", s, ref, say, render, 1, "spp", out)
+    rows, stopped = _doubling("path", s, ref, say, render, 1, "spp", out)
     most = max(rendered, default=0)
     if 4 * most > s.reference_spp:
         # The error of path at n spp against a reference of R spp is its own noise plus the
@@ -264,14 +293,14 @@ def _path(s: ConvergeSettings, ref, say, out: Path) -> list:
         log.warning("path reached %d spp, more than a quarter of the reference's %d spp: its "
                     "last points measure the reference's own noise too; raise "
                     "--reference-spp (or lower --time)", most, s.reference_spp)
-    return rows
+    return rows, stopped
 
 
 #: Photons of pm's first render (more when k asks for it); each next render doubles them.
 PM_START = 10_000
 
 
-def _pm(s: ConvergeSettings, ref, say, out: Path) -> list:
+def _pm(s: ConvergeSettings, ref, say, out: Path) -> tuple:
     scene = _scene(s, s.spp)
 
     def render(photons):
@@ -288,17 +317,22 @@ def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
     s, say = settings, progress or (lambda *a: None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    misses = caustics_path_misses(_scene(s))
+    scene = _scene(s)
+    s.check_scene(scene)
+    misses = caustics_path_misses(scene)
     if misses:
         log.warning("%s", misses)
-    ref, noise, reused = path_reference(s, out, say)
+    ref, noise, reused = path_reference(s, out, say, scene)
     if noise is not None:
         say(f"reference: its own noise, relMSE about {noise:.3g} against the truth (from its "
             f"two halves): errors near it measure the reference")
     runners = {"partpm": _partpm, "pm": _pm, "path": _path}
-    rows = []
+    rows, stopped = [], {}
     for method in s.methods:
-        rows += runners[method](s, ref, say, out)
+        rows_of, stopped[method] = runners[method](s, ref, say, out)
+        rows += rows_of
+    ends = {m: _last_time(rows, m) for m in s.methods
+            if _last_time(rows, m) is not None and _last_time(rows, m) < s.seconds}
     result = {"settings": {**asdict(s), "resolution": list(s.resolution),
                            "methods": list(s.methods)},
               "code": code_version(), "rows": rows, "reference_rel_mse": noise,
@@ -307,8 +341,8 @@ def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
               "images": [f"{m}.exr" for m in s.methods if any(r["method"] == m for r in rows)],
               "at": {str(t): {m: _error_at(rows, m, t) for m in s.methods}
                      for t in sorted({5.0, s.seconds}) if t <= s.seconds},
-              "ends": {m: _last_time(rows, m) for m in s.methods
-                       if _last_time(rows, m) is not None and _last_time(rows, m) < s.seconds},
+              "ends": ends,
+              "ended_by": {m: stopped[m] for m in ends if stopped[m]},
               "reference_misses": misses}
     with open(out / "converge.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["method", "seconds", "rel_mse", "setting"])
@@ -317,6 +351,14 @@ def run_converge(settings: ConvergeSettings, out_dir, progress=print) -> dict:
     (out / "converge.json").write_text(json.dumps(result, indent=2) + "\n")
     _plot(rows, out / "converge.png", s, noise)
     return result
+
+
+def ended_text(result: dict, method: str) -> str:
+    """Why ``method``'s curve in ``result`` ended before the time limit, in words."""
+    if "ended_by" not in result:         # (a run that recorded memory as the only reason)
+        return ENDED_BY["memory"]
+    why = result["ended_by"].get(method)
+    return ENDED_BY.get(why, f"it stopped ({why})") if why else "it stopped early"
 
 
 def _last_time(rows, method: str):
@@ -382,12 +424,12 @@ def format_converge(result) -> str:
             cells.append(f"{v:12.5f}" if v is not None else f"{'-':>12}")
         lines.append(f"{m:8} " + " ".join(cells))
     for m, last in result.get("ends", {}).items():
-        lines.append(f"({m}'s curve ends at {last:.1f} s: its next render did not fit in "
-                     f"memory)")
+        lines.append(f"({m}'s curve ends at {last:.1f} s: {ended_text(result, m)})")
     if result.get("reference_rel_mse") is not None:
         lines.append(f"(the reference's own noise: relMSE about {result['reference_rel_mse']:.3g})")
+    mappers = " and ".join(m for m in ("partpm", "pm") if m in s["methods"])
     given = [f"{who}: {settings_text(props)}" for who, props in (
-        ("partpm and pm", s.get("props", {})), ("partpm", s.get("partpm_props", {}))) if props]
+        (mappers, s.get("props", {})), ("partpm", s.get("partpm_props", {}))) if props]
     if given:
         lines.append("(" + "; ".join(given) + ")")
     if result.get("reference_misses"):

@@ -345,6 +345,7 @@ def format_converge(results: dict, scenes=("cornell_box", "caustic_glass",
     """relMSE against path of every method at the times ``converge.json`` interpolates
     (5 s and the time limit), per scene: its run, then its run with other props
     (``converge_<scene>_nee``) where there is one."""
+    from .converge import ended_text
     runs = [results[f"converge_{scene}"] for scene in scenes]
     times = sorted({float(t) for r in runs for t in r["at"]})
     rows, ended = [], []
@@ -360,7 +361,8 @@ def format_converge(results: dict, scenes=("cornell_box", "caustic_glass",
                             + [_or_dash(at.get(t, {}).get(method), ".3g") for t in times])
                 first = False
                 if method in each.get("ends", {}):
-                    ended.append(f"{label} on {scene} at {each['ends'][method]:.1f} s")
+                    ended.append(f"{label} on {scene} at {each['ends'][method]:.1f} s "
+                                 f"({ended_text(each, method)})")
     s = runs[0]["settings"]
     text = _table(["scene", "method"] + [f"relMSE at {t:g} s" for t in times],
                   "ll" + "r" * len(times), rows)
@@ -373,8 +375,7 @@ def format_converge(results: dict, scenes=("cornell_box", "caustic_glass",
         text += (" The references' own noise, estimated from their halves: relMSE about "
                  + ", ".join(f"{v:.2g} ({scene})" for scene, v in noise) + ".")
     if ended:
-        text += (" A curve ended before the time limit (its next render did not fit in "
-                 "memory): " + "; ".join(ended) + ".")
+        text += " A curve ended before the time limit: " + "; ".join(ended) + "."
     if images:
         text += "\n\n" + " ".join(
             f"![error against time, {scene}]({images}converge_{scene}.png)" for scene in scenes)
