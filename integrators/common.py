@@ -1042,4 +1042,6 @@ class PhotonMapper(mi.SamplingIntegrator):
         p = self.params
         return (f"max_depth = {p.max_depth}, rr_depth = {p.rr_depth}, seed = {p.seed}, "
                 f"direct = {p.direct}, hide_emitters = {p.hide_emitters}, kernel = "
-                f"{p.kernel}, glossy = {p.glossy}, glossy_samples = {p.glossy_samples}")
+                f"{p.kernel}, glossy = {p.glossy}, glossy_samples = {p.glossy_samples}"
+                + (f", samples_per_pass = {self.samples_per_pass}" if self.samples_per_pass
+                   else ""))

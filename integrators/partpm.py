@@ -431,7 +431,7 @@ class PartPMIntegrator(PhotonMapper):
         radius = f"radius = {p.radius}" if p.radius is not None \
             else f"radius_fraction = {self.radius_fraction}"
         passes = "until time_limit" if self.passes == UNTIL_TIME_LIMIT else self.passes
-        # The caustic maps' radius, when they are on (terms() derives the same).
+        # The caustic maps' radius, when they are on (search_radius derives the same).
         if self.caustic_photon_count == 0:
             caustic = ""
         elif self.caustic_radius is not None:

@@ -410,6 +410,8 @@ def test_samples_per_pass_traces_the_eye_samples_in_sets_against_one_set_of_maps
     desc = {"type": kind, "photon_count": 50_000, "hide_emitters": True}
     first = render(scene, mi.load_dict(desc), seed=3, spp=4)
     integrator = mi.load_dict({**desc, "samples_per_pass": 4})
+    assert "samples_per_pass = 4" in str(integrator)       # (it printed without it)
+    assert "samples_per_pass" not in str(mi.load_dict(desc))
     builds = []
     build = type(integrator).build_maps
 
