@@ -228,6 +228,7 @@ class PartPMIntegrator(PhotonMapper):
         self.caustic_radius, self.caustic_radius_fraction = _read_radius_pair(
             props, "caustic_radius", "caustic_radius_fraction")
         self.final_gather = read_int(props, "final_gather", 0, low=0, high=MAX_RAYS_PER_POINT)
+        self.caustic_search_radius = None        # (search_radius finds it for a scene)
         if self.final_gather and self.params.direct != "nee":
             raise ValueError(f"final_gather = {self.final_gather} needs direct = 'nee': "
                              f"direct light at the first hit is sampled, and the global map "
@@ -343,6 +344,8 @@ class PartPMIntegrator(PhotonMapper):
             terms.append(self._points_term("global", by_name["global"], width, self.radius))
         if "caustic" in by_name:
             r = self.caustic_search_radius      # (found with the radius, before any work)
+            if r is None:                        # (terms called without a render)
+                r = self.caustic_search_radius = self._caustic_radius(scene)
             self.stats["caustic_radius"] = r
             terms.append(self._points_term("caustic", by_name["caustic"], width, r))
         return terms
@@ -363,7 +366,7 @@ class PartPMIntegrator(PhotonMapper):
     def cannot_run_pass(self, pass_index: int):
         """A final gather's radius follows a schedule: with passes until a time limit, a
         small ``alpha`` can take it below the least radius before the limit (a given number
-        of passes is checked before the first, in :meth:`terms`)."""
+        of passes is checked before the first, in :meth:`search_radius`)."""
         if not (self.final_gather and pass_index):
             return None
         radius = radius_schedule(self.radius, self.alpha, pass_index)

@@ -154,17 +154,19 @@ def radius_schedule(radius: float, alpha: float, pass_index: int) -> float:
     return float(radius) * math.exp(_log_shrink(alpha, pass_index) / 2)
 
 
-#: Passes up to which :func:`_log_shrink` sums the factors' logarithms one by one.
+#: Passes up to which :func:`_log_shrink` sums the factors' logarithms one by one, for an
+#: alpha below :data:`_EXACT_ALPHA` (above it the log-gammas keep 1e-9 of their value).
 _SUMMED_PASSES = 4096
+_EXACT_ALPHA = 1e-6
 
 
 def _log_shrink(alpha: float, pass_index: int) -> float:
-    """log(r_i^2 / r_0^2) of :func:`radius_schedule`, in logarithms (no underflow): up to
-    :data:`_SUMMED_PASSES` passes the sum of the factors' logarithms, exact for any alpha;
-    past them Gamma(i + 1) Gamma(1/alpha) / Gamma(i + 1/alpha), whose log-gammas would
-    cancel each other's digits away for an alpha below about 1e-13 (there a radius is far
-    below the least long before)."""
-    if pass_index <= _SUMMED_PASSES:
+    """log(r_i^2 / r_0^2) of :func:`radius_schedule`, in logarithms (no underflow):
+    Gamma(i + 1) Gamma(1/alpha) / Gamma(i + 1/alpha), whose log-gammas cancel each other's
+    digits for a tiny alpha (all of them below about 1e-16), so there, up to
+    :data:`_SUMMED_PASSES` passes, the sum of the factors' logarithms (past them a radius is
+    far below the least)."""
+    if alpha < _EXACT_ALPHA and pass_index <= _SUMMED_PASSES:
         return math.fsum(math.log(alpha * (j + 1)) - math.log1p(alpha * j)
                          for j in range(pass_index))
     return math.lgamma(pass_index + 1) + math.lgamma(1 / alpha) - \

@@ -590,7 +590,16 @@ def test_a_reference_path_cannot_render_is_said():
     # rays): flagged by the share of light they scatter (thin glass, a masked mirror and
     # half a mirror were not flagged: a half mirror under a spot made partpm 1.115 x path).
     half = {"type": "blendbsdf", "weight": 0.5, "a": {"type": "diffuse"}, "b": mirror}
+
+    def blend(weight, rgb):
+        return {**half, "weight": weight,
+                "a": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rgb}}}
+    # The share is of the light, over the colour channels, not of the samples: a tenth of
+    # a mirror over a dark base (0.47 of its light) and 0.15 over a red one (0.34) count.
     for flagged in ({"type": "thindielectric"}, {"type": "null"}, half,
+                    blend(0.1, [0.05, 0.05, 0.05]), blend(0.15, [0.6, 0.0, 0.0]),
+                    {"type": "mask", "opacity": {"type": "checkerboard", "color0": 0.0,
+                                                 "color1": 1.0}, "bsdf": {"type": "diffuse"}},
                     {"type": "mask", "opacity": 0.5, "bsdf": mirror},
                     {"type": "mask", "opacity": 0.5, "bsdf": {"type": "diffuse"}},
                     {"type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": 0.05}}):

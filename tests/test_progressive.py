@@ -830,21 +830,34 @@ def test_converge_refuses_options_for_methods_it_does_not_run(tmp_path, capsys, 
             "--time", "0.01", "--out", str(tmp_path / "v")]
     for extra, said in (
             (["--methods", "path", "--direct", "nee"],
-             "--methods must include partpm or pm for --direct nee"),
-            (["--methods", "pm,path", "--direct", "nee", "--final-gather", "4"],
-             "--methods must include partpm for --final-gather 4"),
+             "--direct applies to partpm or pm, which --methods path does not run"),
+            (["--methods", "pm,path", "--direct", "nee", "--final-gather", "0"],
+             "--final-gather applies to partpm, which --methods pm,path does not run"),
             (["--methods", "path", "--photons", "5000", "--alpha", "0.5"],
              "--photons, --alpha apply to partpm, which --methods path does not run"),
+            (["--methods", "path", "--photons", "4", "--maps", "8"],      # (not the range)
+             "--photons, --maps apply to partpm"),
+            (["--methods", "path", "--spp", "2"], "--spp applies to partpm or pm"),
+            (["--methods", "path", "--caustic-radius", "0.1"],  # (not: give caustic photons)
+             "--caustic-radius applies to partpm"),
             (["--methods", "partpm,path", "--k", "20"],
              "--k applies to pm, which --methods partpm,path does not run")):
         assert main(base + extra) == 2, extra
         err = capsys.readouterr().err
         assert said in err, (extra, err)
+    # The settings say it too, in props, to a caller from Python.
+    from mi_partpm.experiments.converge import ConvergeSettings
+    with pytest.raises(ValueError, match="methods must include partpm or pm for direct = nee"):
+        ConvergeSettings(methods=("path",), props={"direct": "nee"}).check()
+    with pytest.raises(ValueError, match="methods must include partpm for final_gather = 2"):
+        ConvergeSettings(methods=("pm",), partpm_props={"final_gather": 2}).check()
     assert not (tmp_path / "v" / "reference.exr").exists()
     made.clear()
     assert main(base + ["--methods", "path"]) == 0
     assert "partpm" not in made and "pm" not in made, made
     assert "partpm and pm" not in capsys.readouterr().out
+    assert main(base + ["--methods", "pm", "--spp", "2", "--direct", "nee"]) == 0  # pm's own
+    assert "partpm" not in made and "(pm: direct = nee)" in capsys.readouterr().out
 
 
 def test_converge_checks_partpms_radii_on_the_scene_before_the_reference(tmp_path, capsys):
@@ -855,7 +868,7 @@ def test_converge_checks_partpms_radii_on_the_scene_before_the_reference(tmp_pat
                  "partpm,path", "--caustic-photons", "1000", "--caustic-radius-fraction",
                  "1e-17", "--out", str(tmp_path / "v")]) == 2
     err = capsys.readouterr().err
-    assert "caustic maps' radius" in err and "--caustic-radius" in err, err
+    assert "caustic maps' radius" in err and "give --caustic-radius)" in err, err
     assert not (tmp_path / "v" / "reference.exr").exists()
     # A progressive caustic radius that alpha shrinks below the least in the first pass
     # (the global one stays above it): refused when the radius is found, naming the prop.

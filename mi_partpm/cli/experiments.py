@@ -218,29 +218,34 @@ def run_scaling(args) -> int:
 def run_converge(args) -> int:
     if not setup(args):
         return 0
-    from ..experiments.converge import ConvergeSettings, format_converge, run_converge as run
-    from .render import apply_text, check_caustic_options, quality_props
-    check_caustic_options(args)
+    from ..experiments.converge import (METHODS, ConvergeSettings, format_converge,
+                                        run_converge as run)
+    from .render import PROP_OPTIONS, apply_text, check_caustic_options, quality_props
     props, partpm_props = quality_props(args)
-    partpm_props = {k: v for k, v in partpm_props.items() if v}     # (0: none, as unset)
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-    # Options left out take the settings' defaults; given, their method must be run.
-    given = {"partpm": {"spp": "--spp", "photons": "--photons", "maps": "--maps",
-                        "radius_fraction": "--radius-fraction", "alpha": "--alpha"},
-             "pm": {"k": "--k"}}
-    values = {key: getattr(args, key) for options in given.values() for key in options
-              if getattr(args, key) is not None}
+    # Options left out take the settings' defaults; given (any value, a zero too), the
+    # methods they are for must be run: unused, they would be named in the table.
+    options = {"spp": "--spp", "photons": "--photons", "maps": "--maps",
+               "radius_fraction": "--radius-fraction", "alpha": "--alpha", "k": "--k"}
+    values = {key: getattr(args, key) for key in options if getattr(args, key) is not None}
+    if set(methods) <= set(METHODS):            # (else the settings' check names them)
+        for needs, given in (
+                (("partpm", "pm"), [PROP_OPTIONS[p] for p in props] +
+                 ([options["spp"]] if "spp" in values else [])),
+                (("partpm",), [PROP_OPTIONS[p] for p in partpm_props] +
+                 [options[k] for k in ("photons", "maps", "radius_fraction", "alpha")
+                  if k in values]),
+                (("pm",), [options["k"]] if "k" in values else [])):
+            if given and not set(needs) & set(methods):
+                raise UsageError(f"{apply_text(given)} to {' or '.join(needs)}, which "
+                                 f"--methods {','.join(methods)} does not run")
+    check_caustic_options(args)
     settings = ConvergeSettings(
         scene=args.scene, seconds=args.time, resolution=args.resolution,
         reference_spp=args.reference_spp, methods=methods, seed=args.seed,
         data_dir=args.data, props=props, partpm_props=partpm_props, **values)
     with user_errors(in_settings):
-        settings.check()                # (the methods named, and props for methods not run)
-    for method, options in given.items():
-        unused = [option for key, option in options.items() if key in values]
-        if unused and method not in methods:
-            raise UsageError(f"{apply_text(unused)} to {method}, which --methods "
-                             f"{','.join(methods)} does not run")
+        settings.check()
     # (path's reference splits its own; partpm's eye paths keep their state between passes)
     check_eye_pass(settings.resolution, settings.spp, kept="partpm" in settings.methods)
     check_experiment_scene(args.scene, "converge")

@@ -220,7 +220,8 @@ def _experiment_options(sub):
     v.add_argument("--resolution", type=parse_resolution, default=(160, 160),
                    help="film size WxH (default 160x160)")
     v.add_argument("--spp", type=positive_int("--spp"),
-                   help="partpm's eye samples per pixel and pass (default 4)")
+                   help="eye samples per pixel of partpm's passes and pm's renders (default "
+                        "4)")
     v.add_argument("--photons", type=positive_int("--photons", high=MAX_RUN),
                    help="partpm's photons per pass, in [1, 2^32) (default 100000; pm's "
                         "curve doubles its photons from 10000, or from 4 x k when that is more)")

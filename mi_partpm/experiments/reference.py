@@ -82,9 +82,11 @@ def specular_shares(bsdfs) -> list:
     """Per BSDF, the share of the light it scatters (reflects or lets through) by its delta
     and null lobes: the light a ray carries that ``path`` cannot connect to a point emitter.
     Estimated in one vectorised call per BSDF by sampling it at normal and at two oblique
-    incidences (texture values at the middle of uv space): the mean of the sampled weights
-    whose lobe was delta or null, over the mean of all (0 where it scatters nothing). A BSDF
-    that cannot be sampled so counts by its lobes: 1 without a smooth one, else 0."""
+    incidences, at random points of uv space (a textured mask's opacity is taken over the
+    texture): the mean of the sampled weights (over the colour channels) whose lobe was
+    delta or null, over the mean of all. A BSDF that cannot be sampled so (a texture
+    without the derivatives a bump map asks for), or whose samples all weigh nothing,
+    counts by its lobes: 1 without a smooth one, else 0."""
     shares = []
     n = _SAMPLES * len(_COSINES)
     cos = np.repeat(np.array(_COSINES), _SAMPLES)
@@ -95,24 +97,26 @@ def specular_shares(bsdfs) -> list:
     si.n = mi.Normal3f(0, 0, 1)
     si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
     si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0)
-    si.uv = mi.Point2f(0.5, 0.5)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(0, n)
+    si.uv = sampler.next_2d()
     ctx = mi.BSDFContext()
     u1, u2 = sampler.next_1d(), sampler.next_2d()
     for bsdf in bsdfs:
+        by_lobes = 0.0 if bsdf.flags() & mi.BSDFFlags.Smooth else 1.0
         try:
             bs, weight = bsdf.sample(ctx, si, u1, u2)
-        except RuntimeError:         # a texture that cannot be evaluated so (a bump map's)
-            shares.append(0.0 if bsdf.flags() & mi.BSDFFlags.Smooth else 1.0)
+        except RuntimeError:
+            shares.append(by_lobes)
             continue
+        grey = sum(weight[c] for c in range(len(weight))) / len(weight)
         # (a lobe or weight the same in every lane comes back as one value)
-        value = np.array(weight, dtype=np.float64).reshape(-1, len(mi.Spectrum())).mean(axis=1)
-        value = np.broadcast_to(np.nan_to_num(value, nan=0.0, posinf=0.0), (n,))
+        value = np.broadcast_to(np.nan_to_num(np.array(grey, dtype=np.float64), nan=0.0,
+                                              posinf=0.0, neginf=0.0), (n,))
         kind = np.broadcast_to(np.array(bs.sampled_type), (n,))
         special = (kind & int(mi.BSDFFlags.Delta | mi.BSDFFlags.Null)) != 0
         total = float(np.sum(value))
-        shares.append(float(np.sum(value[special])) / total if total > 0 else 0.0)
+        shares.append(float(np.sum(value[special])) / total if total > 0 else by_lobes)
     return shares
 
 
