@@ -858,6 +858,12 @@ def test_converge_refuses_options_for_methods_it_does_not_run(tmp_path, capsys, 
     assert "partpm and pm" not in capsys.readouterr().out
     assert main(base + ["--methods", "pm", "--spp", "2", "--direct", "nee"]) == 0  # pm's own
     assert "partpm" not in made and "(pm: direct = nee)" in capsys.readouterr().out
+    from mi_partpm.experiments.converge import format_converge
+    alone = {"settings": {"scene": "x", "seconds": 1.0, "resolution": [8, 8],
+                          "reference_spp": 4, "methods": ["partpm"],
+                          "props": {"direct": "nee"}, "partpm_props": {"final_gather": 1}},
+             "rows": []}
+    assert "(partpm: direct = nee, final_gather = 1)" in format_converge(alone)
 
 
 def test_converge_checks_partpms_radii_on_the_scene_before_the_reference(tmp_path, capsys):

@@ -428,8 +428,11 @@ def format_converge(result) -> str:
     if result.get("reference_rel_mse") is not None:
         lines.append(f"(the reference's own noise: relMSE about {result['reference_rel_mse']:.3g})")
     mappers = " and ".join(m for m in ("partpm", "pm") if m in s["methods"])
-    given = [f"{who}: {settings_text(props)}" for who, props in (
-        (mappers, s.get("props", {})), ("partpm", s.get("partpm_props", {}))) if props]
+    by_who = {}                 # (partpm's own props join the shared ones where pm is not run)
+    for who, props in ((mappers, s.get("props", {})), ("partpm", s.get("partpm_props", {}))):
+        if props:
+            by_who.setdefault(who, {}).update(props)
+    given = [f"{who}: {settings_text(props)}" for who, props in by_who.items()]
     if given:
         lines.append("(" + "; ".join(given) + ")")
     if result.get("reference_misses"):
