@@ -155,6 +155,116 @@ def test_tiled_gather_overlaps_the_compute():
     assert r.frame_cycles == 80 + 1 and r.exposed_gather_cycles == 1
 
 
+def test_a_tree_of_p_pes_not_a_power_of_two_has_ceil_log2_p_levels():
+    """The tree's levels are ceil(log2 P) (hwsim.networks): a tree of 3 PEs needs 2 levels,
+    of 5 or 6 PEs 3, of 1000 PEs 10. The report's per-n rows run P = n for any recorded n,
+    so the other tests' powers of two do not tell ceil from floor (or round): floor gives
+    3 PEs 1 level and 1000 PEs 9, a gather too short by one hop or a whole vector."""
+    cfg = BASE.with_(gather={"topology": "tree", "link_bytes_per_cycle": 12,
+                             "hop_latency_cycles": 2, "adder_latency_cycles": 3})
+    # 100 results x 12 bytes / 12 bytes per cycle = 100 cycles of transfer; a level is
+    # hop 2 + adder 3 = 5 cycles. Pipelined: 100 + L * 5; store-and-forward: L * 105.
+    for pes, levels in ((3, 2), (5, 3), (6, 3), (1000, 10)):
+        assert gather_cycles(cfg, pes, 100) == 100 + levels * 5, pes
+        assert gather_cycles(cfg.with_(gather={"pipelined": False}), pes, 100) == \
+            levels * 105, pes
+    # In a frame: 3 maps on 3 PEs, one query of 10 nodes each (40 cycles); the gather of
+    # 1 result is 12 / 12 = 1 cycle + 2 levels x 5 = 11: 51 cycles.
+    r = simulate(cfg.with_(pe_count=3), workload([[10]] * 3, [[0]] * 3, [[0]] * 3))
+    assert (r.compute_cycles, r.gather_cycles, r.frame_cycles) == (40, 11, 51)
+
+
+def test_a_gather_bound_tiled_schedule_ends_with_the_sum_of_the_tiles_gathers():
+    """Schedule "tiles": the frame ends at max_k (ready_k + sum_{s >= k} g_s), a two-stage
+    pipeline whose gather stage takes one tile after the other (hwsim.model). The other
+    tiled test is compute-bound, where max_k (ready_k + g_k) gives the same frame; here
+    the gather dominates, so a frame that lets the tiles' gathers overlap, or charges a
+    tile's gather for 2 PEs instead of P, is far off (44 or 28 cycles instead of 76).
+
+    4 maps on 4 PEs, 2 tiles of 1 query of 1 node each: 4 cycles a tile, ready = (4, 8).
+    Bus at 1 byte per cycle, no hop or adder latency: a tile's gather is 3 PEs x 1 result x
+    12 bytes = 36 cycles. Frame max(4 + 36 + 36, 8 + 36) = 76; exposed gather 76 - 8 = 68;
+    the whole gather as if alone is 3 x 2 x 12 = 72 (the "after" frame 8 + 72 = 80)."""
+    cfg = BASE.with_(pe_count=4, gather_schedule="tiles", tile_queries=1,
+                     gather={"topology": "bus", "link_bytes_per_cycle": 1,
+                             "hop_latency_cycles": 0, "adder_latency_cycles": 0})
+    w = workload([[1, 1]] * 4, [[0, 0]] * 4, [[0, 0]] * 4)
+    for model in ("analytic", "events"):
+        r = simulate(cfg, w, model=model)
+        assert (r.compute_cycles, r.gather_cycles, r.frame_cycles) == (8, 72, 76), model
+        assert r.exposed_gather_cycles == 68, model
+    assert simulate(cfg.with_(gather_schedule="after"), w).frame_cycles == 80
+
+
+def test_the_gather_vector_is_queries_times_the_configured_bytes_per_result():
+    """``bytes_per_result`` sets the gather's vector (hwsim.networks: V = q *
+    bytes_per_result): every other test keeps the default 12, so a gather that reads 12
+    bytes (the class default) instead of the configured size passes them all and is wrong
+    for any other result format (one float: 4 bytes; RGB float64: 24).
+
+    Two PEs on a bus, 4 bytes per cycle, hop 1, adder 2; map 0 is 10 nodes (40 cycles),
+    map 1 is 5 (20). With 4 bytes per result the PE that is not the root sends 1 x 4 / 4 =
+    1 cycle + 3 = 4 cycles: frame 44 (it is 46 with 12 bytes). Its traffic is 4 byte-hops
+    and 1 add: 4 x 1 pJ + 1 x 2.7 pJ = 6.7 pJ of gather energy. With 24 bytes, 100 results
+    on a pipelined tree of 8 PEs at 8 bytes per cycle: 100 x 24 / 8 = 300 + 3 levels x 3."""
+    cfg = BASE.with_(pe_count=2, bytes_per_result=4,
+                     gather={"topology": "bus", "link_bytes_per_cycle": 4,
+                             "hop_latency_cycles": 1, "adder_latency_cycles": 2})
+    r = simulate(cfg, workload([[10], [5]], [[0], [0]], [[0], [0]]))
+    assert (r.gather_cycles, r.frame_cycles) == (4, 44)
+    assert gather_traffic(cfg, 2, 1) == (4, 1)
+    assert r.energy["gather"] == pytest.approx(6.7e-12)
+    wide = cfg.with_(bytes_per_result=24, gather={"topology": "tree", "link_bytes_per_cycle": 8})
+    assert gather_cycles(wide, 8, 100) == 300 + 3 * 3
+
+
+def test_dram_traffic_is_rounded_up_to_the_configured_burst():
+    """Bytes read from DRAM are rounded up to whole ``memory.dram_burst_bytes`` bursts per
+    tile (hwsim.work). Every other test uses 64-byte bursts, the default, so a model that
+    ignores the key passes them and misreports DRAM traffic, its energy and its time on any
+    other memory. One map of 1000 bytes (SRAM 500), one query of 2 nodes, 4 tested, 1 found:
+    2 x 8 + 4 x 12 + 1 x 16 = 80 bytes. 32-byte bursts: 3 = 96 bytes (64-byte: 128);
+    1-byte bursts: 80. At 1 byte per cycle that is the frame (compute 22, latency
+    2 x 10 / 2 = 10), and 96 x 160 pJ of DRAM energy."""
+    w = workload([[2]], [[4]], [[1]], map_bytes=[1000])
+    for burst, moved in ((32, 96), (1, 80)):
+        cfg = BASE.with_(outstanding_queries=2,
+                         memory={"sram_bytes": 500, "dram_bytes_per_cycle": 1,
+                                 "dram_latency_cycles": 10, "dram_burst_bytes": burst})
+        r = simulate(cfg, w)
+        assert r.dram_bytes.tolist() == [moved], burst
+        assert r.frame_cycles == moved and r.pe_stall.tolist() == [moved - 22], burst
+        assert r.energy["dram"] == pytest.approx(moved * 160e-12), burst
+
+
+def test_idle_cycles_and_dram_bandwidth_per_pe_by_hand():
+    """A PE's idle cycles are the frame less its busy and its stall cycles (it waits for the
+    slowest PE and the gather, FrameReport.pe_idle), and its DRAM bandwidth is bytes per
+    second (FrameReport.dram_bandwidth). The one by-hand check of pe_idle has no stall, so
+    idle = frame - busy passed it; no test read the bandwidth, which per cycle is off by
+    the clock (here 100x).
+
+    Two PEs, each one query of (2 nodes, 4 tested, 1 found): compute 22. Map 0 (1000
+    bytes) does not fit the 500-byte SRAM: 80 bytes -> 128 in bursts, 128 cycles at 1 byte
+    per cycle, stall 106. Map 1 (400 bytes) stays in SRAM. Bus gather 1 x 12 / 12 = 1:
+    frame 129 cycles = 1.29 s at 100 Hz. Idle: 129 - 128 = 1 and 129 - 22 = 107.
+    Bandwidth: 128 bytes / 1.29 s = 99.2 bytes/s on PE 0, 0 on PE 1."""
+    cfg = BASE.with_(pe_count=2, outstanding_queries=2,
+                     memory={"sram_bytes": 500, "dram_bytes_per_cycle": 1,
+                             "dram_latency_cycles": 10, "dram_burst_bytes": 64},
+                     gather={"topology": "bus", "link_bytes_per_cycle": 12,
+                             "hop_latency_cycles": 0, "adder_latency_cycles": 0})
+    w = workload([[2], [2]], [[4], [4]], [[1], [1]], map_bytes=[1000, 400])
+    for model in ("analytic", "events"):
+        r = simulate(cfg, w, model=model)
+        assert r.pe_busy.tolist() == [22, 22] and r.pe_stall.tolist() == [106, 0], model
+        assert r.frame_cycles == 129 and r.seconds == pytest.approx(1.29), model
+        assert r.pe_idle.tolist() == [1, 107], model
+        np.testing.assert_allclose(r.dram_bandwidth, [128 / 1.29, 0.0], rtol=1e-12)
+        np.testing.assert_allclose(r.utilisation, [22 / 129, 22 / 129], rtol=1e-12)
+        assert r.load_imbalance == pytest.approx(128 / 75)
+
+
 def test_more_pes_shorten_the_frame_while_the_gather_grows_less_than_the_compute_shrinks():
     """16 maps of 200 queries: doubling P halves the maps per PE (tens of thousands of cycles
     saved) while the pipelined tree gains one level (hop + adder, 6 cycles): the compute and
@@ -847,6 +957,24 @@ def test_report_on_a_seeded_workload_matches_the_golden_report(tmp_path):
             assert c["frame_cycles"] >= cont[(0, p)]["frame_cycles"] * (1 - 1e-12)
     # The times are 2% noisy: the calibration explains most of them, not all.
     assert 0.9 < result["calibration"]["self"]["r2"] < 1
+
+
+def test_saturation_is_the_first_p_whose_next_p_gains_under_5_percent():
+    """The report's saturation P (hwsim.report): the first P from which the next P of the
+    sweep shortens the frame by less than 5%. The golden sweep halves its frame at every
+    doubling, so it never saturates and every saturation there is the last P; a rule that
+    names the next P (where the gain has already stopped) passed it.
+
+    Frames 1000, 500, 480, 200 at P = 1, 2, 4, 8: 2 -> 4 gains 4% (480 > 0.95 x 500 =
+    475), so P = 2, though 4 -> 8 gains again. Frames 1000, 500, 475, 470: 2 -> 4 gains
+    exactly 5% (not less), 4 -> 8 about 1%: P = 4. Halving throughout: the last P, 8."""
+    from hwsim.report import _saturation
+
+    def points(frames):
+        return [{"pe_count": p, "frame_cycles": f} for p, f in zip((1, 2, 4, 8), frames)]
+    assert _saturation(points([1000, 500, 480, 200])) == 2
+    assert _saturation(points([1000, 500, 475, 470])) == 4
+    assert _saturation(points([1000, 500, 250, 125])) == 8
 
 
 def _no_constant(name):
