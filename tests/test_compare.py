@@ -500,6 +500,69 @@ def test_metrics_on_known_images():
         metrics.rmse(ref, ref[:8])
 
 
+
+def test_display_rel_mse_clamps_both_images_to_one_before_comparing():
+    """The display relMSE clamps the image under test AND the reference to [0, 1]: a
+    reference left unclamped would charge the light's pixels (radiance far above 1, here 2 in
+    the reference and 3 in the image) with an error nobody sees on screen.
+
+    Left half: light, image 3.0 and reference 2.0, both clamp to 1.0: no error.
+    Right half: image 0.6, reference 0.5: (0.6 - 0.5)^2 / (0.5^2 + 0.01) = 0.01 / 0.26.
+    Mean over both halves: 0.5 * 0.01 / 0.26 = 0.019231. (With the reference unclamped the
+    left half alone adds 0.5 * (1 - 2)^2 / (4 + 0.01) = 0.1247.)"""
+    ref = np.full((8, 16, 3), 0.5)
+    img = np.full((8, 16, 3), 0.6)
+    ref[:, :8], img[:, :8] = 2.0, 3.0
+    assert metrics.display_rel_mse(img, ref) == pytest.approx(0.5 * 0.01 / 0.26)
+    # Unclamped, the light dominates: 0.5 * 1 / 4.01 + 0.5 * 0.01 / 0.26.
+    assert metrics.rel_mse(img, ref) == pytest.approx(0.5 / 4.01 + 0.5 * 0.01 / 0.26)
+
+
+def test_worst_tile_is_where_partpm_and_pm_differ_most_with_each_configurations_share_there():
+    """``worst_tile`` (the README's last column of the best-configuration table) finds the
+    tile where the paper's partpm and pm differ most, by (row, col), and reports the share of
+    each configuration's own error against the reference held there: the paper's for
+    ``share``, the best configuration's for ``share_other``. Catches a share computed from
+    the wrong image and a row and column swapped.
+
+    16x16 images, so 2x2 tiles of 8x8; the reference is 0.5 everywhere.
+    - pm = ref + 0.1 everywhere; paper = ref + 0.1, but ref + 0.3 in tile (row 1, col 0):
+      paper - pm is 0.2 in that tile only, so it holds all of their difference (share 1).
+    - paper against ref: 0.3^2 = 0.09 per value in tile (1, 0), 0.1^2 = 0.01 in the other
+      three tiles: 0.09 / (0.09 + 3 * 0.01) = 0.75.
+    - best = ref + 0.2 in tiles (1, 0) and (0, 1), exact elsewhere: 0.04 / (2 * 0.04) = 0.5.
+    """
+    from mi_partpm.experiments.compare import worst_tile
+    ref = np.full((16, 16, 3), 0.5)
+    pm = ref + 0.1
+    paper = ref + 0.1
+    paper[8:, :8] = 0.8
+    best = ref.copy()
+    best[8:, :8] += 0.2
+    best[:8, 8:] += 0.2
+    tile = worst_tile(paper, pm, ref, best)
+    assert (tile["row"], tile["col"]) == (1, 0)
+    assert tile["share_vs_pm"] == pytest.approx(1.0)
+    assert tile["share"] == pytest.approx(0.75)
+    assert tile["share_other"] == pytest.approx(0.5)
+
+
+def test_the_comparison_table_puts_each_metric_under_its_own_heading():
+    """``format_table`` (what ``partpm compare`` prints) writes every metric in the column
+    its heading names; the values are chosen distinct so that two columns swapped show."""
+    from mi_partpm.experiments.compare import format_table
+    m = {"rmse": 0.01234, "rel_mse": 0.05678, "mare": 0.4321, "ssim": 0.876,
+         "mean_ratio": 0.9876, "max_block_error_share": 0.3456}
+    result = {"radius": 0.05, "settings": {"k": 40}, "mean_knn_radius": 0.051,
+              "metrics": {"partpm_vs_pm": m},
+              "seconds": {"pm": 1.0, "partpm": 2.0, "reference": 3.0, "pm_estimate": 0.5,
+                          "partpm_estimate": 0.25}}
+    lines = format_table(result).splitlines()
+    heads = lines[1].split()
+    assert heads[:5] == ["pair", "RMSE", "relMSE", "MARE", "SSIM"]
+    assert lines[2].split() == ["partpm_vs_pm", "0.01234", "0.05678", "0.4321", "0.876",
+                                "0.9876", "0.3456"]
+
 def test_heatmap_is_red_where_brighter_and_blue_where_darker(tmp_path):
     import matplotlib.image as mpimg
     ref = np.full((64, 64, 3), 0.5)

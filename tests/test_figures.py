@@ -250,3 +250,37 @@ def test_figures_help_names_every_group_of_steps():
     listed = re.search(r"groups \(([^)]*)\)", only.help).group(1)
     groups = {step.group for step in regenerate.steps()}
     assert groups and groups <= {g.strip() for g in listed.split(",")}, (groups, listed)
+
+
+def test_readme_comparison_and_long_run_tables_put_each_figure_in_its_column():
+    """The README's comparison rows print each metric under its heading (values distinct, so
+    two columns swapped show), the long progressive run's ratio is the early error over the
+    late one (4 passes 0.08, 64 passes 0.02: 0.08 / 0.02 = 4.00, consistency meaning the
+    error falls), and a size rendered several times shows the median of each phase's times
+    (trace 1, 2 and 6 s: median 2.0, mean 3.0)."""
+    m = {"rel_mse": 0.01234, "mare": 0.4321, "ssim": 0.876, "mean_ratio": 0.9876,
+         "max_block_error_share": 0.3456}
+    compare = {"settings": {"k": 40}, "mean_knn_radius": 0.0512, "radius": 0.05,
+               "metrics": {p: m for p in ("partpm_vs_pm", "pm_vs_reference",
+                                          "partpm_vs_reference")}}
+    table = readme.format_compare({"compare_x": compare}, scenes=("x",)).splitlines()
+    assert table[0].startswith("| scene | k (mean kNN radius / r) | pair | relMSE | MARE | SSIM |")
+    assert table[2] == ("| x | 40 (0.0512 / 0.05) | partpm vs pm | 0.0123 | 0.432 | 0.876 "
+                        "| 0.988 | 0.346 |")
+
+    rows = [{"method": "partpm", "seconds": t, "rel_mse": e, "setting": f"{p} passes"}
+            for t, e, p in ((1.0, 0.08, 4), (9.0, 0.04, 16), (30.0, 0.02, 64))]
+    long = {"settings": {"scene": "cornell_box", "seconds": 30.0}, "rows": rows}
+    line = readme.format_converge_long({"long": long}, step="long").splitlines()[2]
+    assert line == "| cornell_box | 30 s | 64 | 0.08 | 0.02 | 4.00 |"
+
+    def render(trace):
+        return {"photons_emitted": 10, "photons_stored": 30, "map_count": 8, "waves": 1,
+                "time_trace": trace, "time_build": 1.0, "time_estimate": 1.0,
+                "time_render": 10.0, "peak_memory_bytes": 3000}
+    results = {}
+    for (size, steps), traces in zip(readme.large_steps().items(), ((1.0, 2.0, 6.0), (5.0,))):
+        assert len(steps) == len(traces)
+        results.update({step: render(t) for step, t in zip(steps, traces)})
+    large = readme.format_large(results).splitlines()
+    assert large[2].split(" | ")[5] == "2.0"

@@ -933,6 +933,23 @@ def test_the_radius_schedule_keeps_its_digits_for_any_alpha():
         rel=1e-9)
 
 
+def test_the_error_at_a_runs_own_time_is_that_runs_error():
+    """``_error_at`` holds a curve's ends: at the time of its first and last runs it gives
+    those runs' errors (a time limit met exactly by the last run is on the curve), and
+    between runs it interpolates in log-log. Catches an end treated as outside the curve
+    (None in the README's table) and a linear interpolation in place of the log-log one.
+
+    pm's runs: (1 s, 0.04), (4 s, 0.02). At 2 s, halfway in log time between 1 and 4:
+    exp((ln 0.04 + ln 0.02) / 2) = sqrt(0.04 * 0.02) = 0.028284 (linear interpolation would
+    give 0.04 - 0.02 / 3 = 0.03333)."""
+    from mi_partpm.experiments import converge
+    rows = [{"method": "pm", "seconds": t, "rel_mse": e, "setting": ""}
+            for t, e in ((1.0, 0.04), (4.0, 0.02))]
+    assert converge._error_at(rows, "pm", 1.0) == pytest.approx(0.04)
+    assert converge._error_at(rows, "pm", 4.0) == pytest.approx(0.02)
+    assert converge._error_at(rows, "pm", 2.0) == pytest.approx((0.04 * 0.02) ** 0.5)
+    assert converge._error_at(rows, "path", 2.0) is None
+
 def test_a_converge_curve_that_ends_early_gives_no_error_after_it():
     """The error at a time is read off a method's curve between its runs: a curve that
     stopped before the time limit (its next render did not fit in memory) said its last

@@ -494,3 +494,77 @@ def test_experiments_say_they_do_not_use_a_scene_files_own_integrator(tmp_path, 
         check_experiment_scene(str(xml), "compare")
     assert f'scene {xml} has an <integrator type="partpm"> of its own, which compare does ' \
         f'not use' in caplog.text
+
+
+def _fake_maps(photons, bytes_, depths):
+    """What ``speedup._row`` reads of n maps: their sizes, photons and tree depths."""
+    from types import SimpleNamespace
+    forest = SimpleNamespace(photon_count=np.array(photons), depth=lambda m: depths[m])
+    return SimpleNamespace(map_bytes=np.array(bytes_), forest=forest)
+
+
+def test_speedup_rows_are_medians_of_the_timings_and_ratios_against_one_map():
+    """The figures of a speedup row, from timings and counts chosen so that a mean in place
+    of a median, a median over the wrong axis, a ratio inverted or a count read from the
+    wrong row each give another number. Worked by hand:
+
+    n = 1, times (1 map x 3 repeats) 1.0, 1.2, 5.0: per-map median 1.2 (mean 2.4); all maps
+    1.2. Counts over 2 queries: nodes 10, 20 (mean 15), tested 40, 60 (50), found 4, 6 (5).
+
+    n = 2, times map 0: 1.0, 0.5, 0.6; map 1: 0.8, 3.0, 0.7. Per-map median of all six
+    (0.5 0.6 0.7 0.8 1.0 3.0): (0.7 + 0.8) / 2 = 0.75 (mean 1.1); min 0.5, max 3.0. All maps
+    in turn: each map's median over its repeats, 0.6 + 0.8 = 1.4 (the medians per repeat
+    would give 0.9 + 1.75 + 0.65 = 3.3). Nodes 6, 8 and 4, 6 (mean 6), tested 20, 30 twice
+    (25), found 2, 3 twice (2.5).
+
+    Speedup 1.2 / 0.75 = 1.6 (not the ideal 2 / 1 = 2), nodes 15 / 6 = 2.5, tested 50 / 25 = 2.0.
+    The README's speedup row prints them: 0.75 s = 750 ms, 1.60, 1.40, 6.0, 25.0, 2.5."""
+    from mi_partpm.experiments import readme
+    one = speedup._row(1, _fake_maps([100], [4000], [5]), np.array([[1.0, 1.2, 5.0]]),
+                       np.array([[[10, 20]], [[40, 60]], [[4, 6]]]), 0.0, 0.0)
+    two = speedup._row(2, _fake_maps([60, 40], [3000, 1000], [4, 3]),
+                       np.array([[1.0, 0.5, 0.6], [0.8, 3.0, 0.7]]),
+                       np.array([[[6, 8], [4, 6]], [[20, 30], [20, 30]], [[2, 3], [2, 3]]]),
+                       1e-7, 0.25)
+    rows = [one, two]
+    speedup._add_ratios(rows)
+    assert one["per_map_seconds"] == pytest.approx(1.2) and one["total_seconds"] == 1.2
+    assert one["speedup"] == 1.0 and one["node_ratio"] == 1.0 and one["tested_ratio"] == 1.0
+    assert two["per_map_seconds"] == pytest.approx(0.75)
+    assert (two["per_map_seconds_min"], two["per_map_seconds_max"]) == (0.5, 3.0)
+    assert two["total_seconds"] == pytest.approx(1.4)
+    assert (two["mean_nodes_visited"], two["mean_photons_tested"],
+            two["mean_photons_found"]) == (6.0, 25.0, 2.5)
+    assert two["photons_per_map"] == 50.0 and two["map_bytes_mean"] == 2000.0
+    assert two["tree_depth"] == 4
+    assert two["speedup"] == pytest.approx(1.6) and two["ideal"] == 2.0
+    assert two["node_ratio"] == pytest.approx(2.5) and two["tested_ratio"] == pytest.approx(2.0)
+    table = readme.format_speedup({"speedup_x": {"rows": rows}}, scenes=("x",)).splitlines()
+    assert table[3] == "|  | 2 | 750 | 1.60 | 1.40 | 6.0 | 25.0 | 2.5 | 4 |"
+
+
+def test_a_bench_row_is_the_ratio_of_medians_with_its_rounds_range_and_met_at_the_target():
+    """A timed bench row (``_Bench.faster``): the ratio is baseline over ours of the MEDIAN
+    round times, the range spans every round's own ratio, and a ratio equal to its target
+    meets it (the target is "at least" / "at most"). The README's bench table prints them.
+
+    ours 1.0, 2.0, 6.0 s (median 2.0, mean 3.0), baseline 2.0, 3.0, 3.0 s (median 3.0, mean
+    2.667): ratio 3.0 / 2.0 = 1.5 (means would give 0.889); rounds 2.0, 1.5, 0.5: range
+    0.5 - 2.0. Target 1.5 "at least": met, exactly at it. An "at most" row of ratio 2.0
+    against a target 2.0 is met too; one of 2.5 is not. (Their times, 4 and 5 s against
+    2 s, differ from their ratios: a ratio equal to ``ours`` is printed as no ratio.)"""
+    from mi_partpm.experiments import readme
+    from mi_partpm.experiments.bench import _Bench
+    b = _Bench(repeats=3, say=lambda *a: None)
+    b.faster("x", [1.0, 2.0, 6.0], [2.0, 3.0, 3.0], "base", 1.5)
+    r = b.rows[0]
+    assert (r["ours"], r["baseline"], r["ratio"]) == (2.0, 3.0, 1.5)
+    assert r["ratio_range"] == [0.5, 2.0] and r["rounds"] == 3
+    assert r["met"] is True and r["target_is"] == "at least"
+    b.row("y", 4.0, 2.0, "one map", 2.0, 2.0, "time of 32 maps / 1 map", at_least=False)
+    b.row("z", 5.0, 2.0, "one map", 2.0, 2.5, "time of 32 maps / 1 map", at_least=False)
+    assert b.rows[1]["met"] is True and b.rows[2]["met"] is False
+    table = readme.format_bench({"bench": {"rows": b.rows}}).splitlines()
+    assert table[2] == "| x | 2 s | base: 3 s | 1.50x faster (0.50-2.00) | 1.5x | yes |"
+    assert table[3].endswith("| 2.00 | <= 2 | yes |")
+    assert table[4].endswith("| 2.50 | <= 2 | no |")
