@@ -35,6 +35,16 @@ def workload(nodes, tested, found, map_bytes=None, bytes_per_node=8, bytes_per_p
 BASE = HardwareConfig(pe_count=1, clock_hz=100.0, cycles_per_node=4, cycles_per_test=3,
                       cycles_per_accumulate=2)
 
+#: Two PEs whose 500-byte SRAM a 1000-byte map does not fit: DRAM at 1 byte per cycle with
+#: a latency of 10 and bursts of 64 bytes, 2 queries in flight; a bus of 12 bytes per cycle
+#: with no hop or adder latency.
+TWO_PES_SMALL_SRAM = BASE.with_(
+    pe_count=2, outstanding_queries=2,
+    memory={"sram_bytes": 500, "dram_bytes_per_cycle": 1, "dram_latency_cycles": 10,
+            "dram_burst_bytes": 64},
+    gather={"topology": "bus", "link_bytes_per_cycle": 12, "hop_latency_cycles": 0,
+            "adder_latency_cycles": 0})
+
 
 def test_one_pe_by_hand():
     # Map 0, two queries: (10 nodes, 20 tested, 5 found), (6, 8, 2).
@@ -249,11 +259,7 @@ def test_idle_cycles_and_dram_bandwidth_per_pe_by_hand():
     per cycle, stall 106. Map 1 (400 bytes) stays in SRAM. Bus gather 1 x 12 / 12 = 1:
     frame 129 cycles = 1.29 s at 100 Hz. Idle: 129 - 128 = 1 and 129 - 22 = 107.
     Bandwidth: 128 bytes / 1.29 s = 99.2 bytes/s on PE 0, 0 on PE 1."""
-    cfg = BASE.with_(pe_count=2, outstanding_queries=2,
-                     memory={"sram_bytes": 500, "dram_bytes_per_cycle": 1,
-                             "dram_latency_cycles": 10, "dram_burst_bytes": 64},
-                     gather={"topology": "bus", "link_bytes_per_cycle": 12,
-                             "hop_latency_cycles": 0, "adder_latency_cycles": 0})
+    cfg = TWO_PES_SMALL_SRAM
     w = workload([[2], [2]], [[4], [4]], [[1], [1]], map_bytes=[1000, 400])
     for model in ("analytic", "events"):
         r = simulate(cfg, w, model=model)
@@ -317,11 +323,7 @@ def test_event_model_agrees_with_the_analytic_one_without_contention(topology, s
 
 
 def test_two_pes_sharing_one_dram_channel_by_hand():
-    cfg = BASE.with_(pe_count=2, outstanding_queries=2,
-                     memory={"sram_bytes": 500, "dram_bytes_per_cycle": 1,
-                             "dram_latency_cycles": 10, "dram_burst_bytes": 64},
-                     gather={"topology": "bus", "link_bytes_per_cycle": 12,
-                             "hop_latency_cycles": 0, "adder_latency_cycles": 0})
+    cfg = TWO_PES_SMALL_SRAM
     # Each map: 1 query of (2 nodes, 4 tested, 1 found), 1000 bytes, so in DRAM: compute 22,
     # 128 bytes = 128 cycles of transfer, latency 10. Gather on the bus: 1 x 12 / 12 = 1.
     w = workload([[2], [2]], [[4], [4]], [[1], [1]], map_bytes=[1000, 1000])
